@@ -1,0 +1,210 @@
+"""Frames, poses and raster indexing: the only owner of the project's conventions.
+
+Every other module asks this one how metres map to pixels and how solver cells map to poses.
+The conventions (pinned by ``tests/test_geometry.py``):
+
+* World frame: local metric east-north-up per city, metres. ``x`` east, ``y`` north.
+* Pose: ``(x, y, yaw)``; yaw is the vehicle's forward axis counterclockwise from east, radians,
+  wrapped to ``(-pi, pi]``.
+* Ego frame: ``x`` forward, ``y`` left, ``z`` up (ISO 8855, nuScenes/Argoverse), metres.
+* Rasters: ``(C, H, W)`` at ``RESOLUTION`` m/px, row 0 at the north edge, column 0 at the west
+  edge. Continuous pixel coordinates ``(row, col)`` put integer values on pixel *corners*; the
+  centre of pixel ``[r, c]`` is ``(r + 0.5, c + 0.5)``.
+* BEV: ``BEV_SIZE`` square in the ego frame, forward = up (row 0 is the far front), the vehicle's
+  right = increasing column; the ego sits on the corner shared by the four central pixels.
+* Map tile: ``TILE_SIZE`` square whose central pixel corner is the prior snapped to the grid.
+* Solver: rotation ``k`` turns the BEV image counterclockwise (as displayed north-up) by
+  ``2 pi k / K`` about the ego point, so it shows the scene of a vehicle with
+  ``yaw = pi/2 + 2 pi k / K`` (k = 0: the BEV as it is, i.e. heading north). Score cell
+  ``(h, w)`` puts the BEV's top-left pixel on tile pixel ``(h, w)``; the ego point then lies at
+  tile corner ``(h + BEV_SIZE/2, w + BEV_SIZE/2)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+RESOLUTION = 0.5  # metres per pixel, BEV and maps
+BEV_SIZE = 128  # pixels, 64 m
+TILE_SIZE = 256  # pixels, 128 m
+SCORE_SIZE = TILE_SIZE - BEV_SIZE + 1  # 129 valid correlation offsets per axis
+PRIOR_RANGE = 32.0  # metres: prior = GT + U[-PRIOR_RANGE, PRIOR_RANGE] per axis
+NUM_ROTATIONS = 256  # paper's K
+
+
+def wrap_angle(a):
+    """Wraps radians to ``(-pi, pi]`` (NumPy or JAX arrays, or floats)."""
+    xp = _xp(a)
+    w = xp.mod(a + math.pi, 2 * math.pi) - math.pi  # [-pi, pi)
+    return xp.where(w == -math.pi, math.pi, w)
+
+
+def angle_error(a, b):
+    """Absolute wrapped difference of two angles, radians in ``[0, pi]``."""
+    return _xp(a).abs(wrap_angle(a - b))
+
+
+def _xp(a):
+    mod = type(a).__module__
+    if mod.startswith("jax"):
+        import jax.numpy as jnp
+
+        return jnp
+    return np
+
+
+# --------------------------------------------------------------------------- raster grids
+
+
+@dataclasses.dataclass(frozen=True)
+class RasterGrid:
+    """A north-up raster's placement in the world frame.
+
+    Attributes:
+      x_min: world x (m) of the west edge (left edge of column 0).
+      y_max: world y (m) of the north edge (top edge of row 0).
+      height, width: raster size in pixels.
+      resolution: metres per pixel.
+    """
+
+    x_min: float
+    y_max: float
+    height: int
+    width: int
+    resolution: float = RESOLUTION
+
+    @classmethod
+    def covering(cls, bounds, resolution: float = RESOLUTION, margin: float = 0.0) -> RasterGrid:
+        """The smallest grid with corners on multiples of ``resolution`` covering
+        ``bounds = (x_min, y_min, x_max, y_max)`` grown by ``margin`` metres."""
+        x0, y0, x1, y1 = bounds
+        x0 = math.floor((x0 - margin) / resolution) * resolution
+        y0 = math.floor((y0 - margin) / resolution) * resolution
+        x1 = math.ceil((x1 + margin) / resolution) * resolution
+        y1 = math.ceil((y1 + margin) / resolution) * resolution
+        width = int(round((x1 - x0) / resolution))
+        height = int(round((y1 - y0) / resolution))
+        return cls(x_min=x0, y_max=y1, height=height, width=width, resolution=resolution)
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """``(x_min, y_min, x_max, y_max)`` in metres."""
+        return (
+            self.x_min,
+            self.y_max - self.height * self.resolution,
+            self.x_min + self.width * self.resolution,
+            self.y_max,
+        )
+
+    def world_to_pixel(self, x, y):
+        """World metres to continuous ``(row, col)``; integers are pixel corners."""
+        col = (np.asarray(x) - self.x_min) / self.resolution
+        row = (self.y_max - np.asarray(y)) / self.resolution
+        return row, col
+
+    def pixel_to_world(self, row, col):
+        """Continuous ``(row, col)`` to world ``(x, y)`` metres."""
+        x = self.x_min + np.asarray(col) * self.resolution
+        y = self.y_max - np.asarray(row) * self.resolution
+        return x, y
+
+    def snap_to_corner(self, x, y) -> tuple[np.ndarray, np.ndarray]:
+        """The pixel corner nearest to world ``(x, y)``: ``(row, col)`` integers."""
+        row, col = self.world_to_pixel(x, y)
+        return np.round(row).astype(np.int64), np.round(col).astype(np.int64)
+
+    def affine(self):
+        """The rasterio/GDAL-style affine ``(a, b, c, d, e, f)``: x = a*col + b*row + c, etc."""
+        r = self.resolution
+        return (r, 0.0, self.x_min, 0.0, -r, self.y_max)
+
+
+def tile_window(grid: RasterGrid, x, y, size: int = TILE_SIZE):
+    """Where the tile centred on world ``(x, y)`` lies in ``grid``.
+
+    The centre is snapped to the nearest pixel corner. Returns ``(row0, col0, cx, cy)``: the
+    tile's top-left pixel in the grid (may be out of range: outside is zero) and the snapped
+    centre in world metres.
+    """
+    row_c, col_c = grid.snap_to_corner(x, y)
+    cx, cy = grid.pixel_to_world(row_c, col_c)
+    return row_c - size // 2, col_c - size // 2, cx, cy
+
+
+# --------------------------------------------------------------------------- poses and frames
+
+
+def ego_to_world(pose, points):
+    """Ego-frame points ``(..., 2)`` (forward, left) of ``pose`` to world ``(..., 2)``."""
+    pose = np.asarray(pose, np.float64)
+    points = np.asarray(points, np.float64)
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    f, l = points[..., 0], points[..., 1]
+    return np.stack([pose[0] + c * f - s * l, pose[1] + s * f + c * l], axis=-1)
+
+
+def world_to_ego(pose, points):
+    """World points ``(..., 2)`` to the ego frame ``(..., 2)`` (forward, left) of ``pose``."""
+    pose = np.asarray(pose, np.float64)
+    points = np.asarray(points, np.float64)
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    dx, dy = points[..., 0] - pose[0], points[..., 1] - pose[1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=-1)
+
+
+def bev_cell_centers_ego(size: int = BEV_SIZE, resolution: float = RESOLUTION) -> np.ndarray:
+    """Ego-frame ``(forward, left)`` metres of each BEV pixel centre, shape ``(size, size, 2)``."""
+    idx = (size / 2 - np.arange(size) - 0.5) * resolution  # row i -> forward, col j -> left
+    fwd = np.broadcast_to(idx[:, None], (size, size))
+    left = np.broadcast_to(idx[None, :], (size, size))
+    return np.stack([fwd, left], axis=-1)
+
+
+def ego_to_bev_pixel(points, size: int = BEV_SIZE, resolution: float = RESOLUTION):
+    """Ego ``(..., 2)`` (forward, left) metres to continuous BEV ``(row, col)``."""
+    points = np.asarray(points)
+    row = size / 2 - points[..., 0] / resolution
+    col = size / 2 - points[..., 1] / resolution
+    return row, col
+
+
+# --------------------------------------------------------------------------- solver cells
+
+
+def rotation_angle(k, num_rotations: int):
+    """Counterclockwise turn (radians) that solver rotation ``k`` applies to the BEV image."""
+    return 2 * math.pi * np.asarray(k) / num_rotations
+
+
+def yaw_from_rotation(k, num_rotations: int):
+    """The vehicle yaw (radians, wrapped) that solver rotation index ``k`` (may be fractional)
+    stands for."""
+    return wrap_angle(math.pi / 2 + 2 * math.pi * np.asarray(k, np.float64) / num_rotations)
+
+
+def rotation_from_yaw(yaw, num_rotations: int):
+    """Continuous rotation index in ``[0, K)`` for a vehicle yaw; round it for the GT bin."""
+    k = (np.asarray(yaw, np.float64) - math.pi / 2) / (2 * math.pi) * num_rotations
+    return np.mod(k, num_rotations)
+
+
+def cell_to_tile_offset(h, w, resolution: float = RESOLUTION, bev_size: int = BEV_SIZE,
+                        tile_size: int = TILE_SIZE):
+    """Score cell ``(h, w)`` (may be fractional) to the ego position relative to the tile
+    centre, ``(dx east, dy north)`` metres."""
+    centre = (tile_size - bev_size) / 2  # the cell whose ego point is the tile centre (64)
+    dx = (np.asarray(w, np.float64) - centre) * resolution
+    dy = -(np.asarray(h, np.float64) - centre) * resolution
+    return dx, dy
+
+
+def tile_offset_to_cell(dx, dy, resolution: float = RESOLUTION, bev_size: int = BEV_SIZE,
+                        tile_size: int = TILE_SIZE):
+    """Inverse of :func:`cell_to_tile_offset`: continuous ``(h, w)``."""
+    centre = (tile_size - bev_size) / 2
+    w = np.asarray(dx, np.float64) / resolution + centre
+    h = -np.asarray(dy, np.float64) / resolution + centre
+    return h, w

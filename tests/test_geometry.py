@@ -1,0 +1,95 @@
+"""Pins the conventions of seglocnet_jax.geometry with hand-made cases and NumPy references."""
+
+import math
+
+import numpy as np
+import pytest
+
+from seglocnet_jax import geometry as g
+
+
+def test_wrap_angle_range_and_pi():
+    a = np.array([math.pi, -math.pi, 3 * math.pi, 0.0, 2 * math.pi + 0.1, -0.1])
+    w = g.wrap_angle(a)
+    np.testing.assert_allclose(w, [math.pi, math.pi, math.pi, 0.0, 0.1, -0.1], atol=1e-12)
+    assert np.all(w > -math.pi) and np.all(w <= math.pi)
+
+
+def test_angle_error_wraps():
+    assert g.angle_error(math.radians(179), math.radians(-179)) == pytest.approx(math.radians(2))
+    assert g.angle_error(0.0, 2 * math.pi) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_grid_corner_and_centre_conventions():
+    grid = g.RasterGrid(x_min=100.0, y_max=50.0, height=10, width=20)
+    # Row 0 is the north edge, column 0 the west edge; integers are corners.
+    x, y = grid.pixel_to_world(0, 0)
+    assert (x, y) == (100.0, 50.0)
+    x, y = grid.pixel_to_world(0.5, 0.5)  # centre of pixel [0, 0]
+    assert (x, y) == (100.25, 49.75)
+    r, c = grid.world_to_pixel(101.0, 49.0)
+    assert (r, c) == (2.0, 2.0)
+    assert grid.bounds == (100.0, 45.0, 110.0, 50.0)
+
+
+def test_grid_covering_snaps_outward():
+    grid = g.RasterGrid.covering((0.3, -0.2, 9.9, 4.1))
+    assert grid.x_min == 0.0 and grid.y_max == 4.5
+    assert grid.bounds[2] >= 9.9 and grid.bounds[1] <= -0.2
+
+
+def test_tile_window_centre_is_snapped_corner():
+    grid = g.RasterGrid(x_min=0.0, y_max=200.0, height=400, width=400)
+    row0, col0, cx, cy = g.tile_window(grid, 100.1, 99.8)
+    assert (cx, cy) == (100.0, 100.0)
+    assert (row0, col0) == (200 - 128, 200 - 128)
+
+
+def test_ego_world_round_trip_and_heading():
+    pose = np.array([10.0, -5.0, math.pi / 2])  # heading north
+    fwd = g.ego_to_world(pose, np.array([1.0, 0.0]))
+    np.testing.assert_allclose(fwd, [10.0, -4.0], atol=1e-12)
+    left = g.ego_to_world(pose, np.array([0.0, 1.0]))
+    np.testing.assert_allclose(left, [9.0, -5.0], atol=1e-12)  # left of north is west
+    pts = np.random.default_rng(0).normal(size=(5, 2))
+    np.testing.assert_allclose(g.world_to_ego(pose, g.ego_to_world(pose, pts)), pts, atol=1e-12)
+
+
+def test_bev_cells_forward_is_up_right_is_right():
+    c = g.bev_cell_centers_ego()
+    assert c.shape == (g.BEV_SIZE, g.BEV_SIZE, 2)
+    # Top-left pixel: far front, left side.
+    np.testing.assert_allclose(c[0, 0], [31.75, 31.75])
+    # Pixel just below-right of the ego corner: slightly behind and to the right.
+    np.testing.assert_allclose(c[64, 64], [-0.25, -0.25])
+    r, col = g.ego_to_bev_pixel(c)
+    np.testing.assert_allclose(r, np.arange(128)[:, None] + 0.5 + 0 * col)
+    np.testing.assert_allclose(col, np.arange(128)[None, :] + 0.5 + 0 * r)
+
+
+def test_heading_north_bev_is_an_unrotated_map_crop():
+    # Heading north (k = 0), each BEV pixel centre is a map pixel centre of the same layout.
+    grid = g.RasterGrid(x_min=0.0, y_max=100.0, height=200, width=200)
+    pose = np.array([50.0, 50.0, math.pi / 2])
+    world = g.ego_to_world(pose, g.bev_cell_centers_ego())
+    r, c = grid.world_to_pixel(world[..., 0], world[..., 1])
+    np.testing.assert_allclose(r - 0.5, 36 + np.arange(128)[:, None] + 0 * c, atol=1e-9)
+    np.testing.assert_allclose(c - 0.5, 36 + np.arange(128)[None, :] + 0 * r, atol=1e-9)
+
+
+def test_rotation_yaw_mapping():
+    K = 256
+    assert g.yaw_from_rotation(0, K) == pytest.approx(math.pi / 2)
+    assert g.yaw_from_rotation(K // 4, K) == pytest.approx(math.pi)  # turned CCW 90: west
+    assert g.yaw_from_rotation(3 * K // 4, K) == pytest.approx(0.0, abs=1e-12)  # east
+    ks = np.arange(K)
+    np.testing.assert_allclose(g.rotation_from_yaw(g.yaw_from_rotation(ks, K), K), ks, atol=1e-9)
+
+
+def test_cell_offset_mapping():
+    dx, dy = g.cell_to_tile_offset(64, 64)
+    assert (dx, dy) == (0.0, 0.0)
+    dx, dy = g.cell_to_tile_offset(0, 128)  # top-right cell: north-east of the centre
+    assert (dx, dy) == (32.0, 32.0)
+    h, w = g.tile_offset_to_cell(dx, dy)
+    assert (h, w) == (0.0, 128.0)
