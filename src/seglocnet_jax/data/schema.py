@@ -1,0 +1,77 @@
+"""The record and batch schema shared by the simulator, the dataset converters, the offline
+pipeline, the loader and the model.
+
+A *sample* is one frame as a producer (simulator or converter) emits it, before any map variant
+is applied. Producers return a plain ``dict`` with exactly ``SAMPLE_KEYS``; :func:`check_sample`
+validates one and names the offending key. A *batch* is what the loader yields and the jitted
+model consumes: fixed shapes, NumPy arrays, keys ``BATCH_KEYS``.
+
+Frames: world = the city's local metric ENU frame (see :mod:`seglocnet_jax.geometry`); ego =
+x forward, y left, z up, origin at the vehicle reference point on the ground; camera = OpenCV
+(x right, y down, z forward). ``cam_to_ego`` maps homogeneous camera points to the ego frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# key -> (dtype, shape with symbolic dims). N cameras, H x W images, P LiDAR points.
+SAMPLE_KEYS: dict[str, tuple[str, tuple]] = {
+    "sample_id": ("str", ()),  # unique within a dataset, stable across runs
+    "city": ("str", ()),  # city key: "helsinki", "kouvola", "boston-seaport", "MIA", ...
+    "pose": ("float64", (3,)),  # world x (m), y (m), yaw (rad, CCW from east)
+    "images": ("uint8", ("N", "H", "W", 3)),  # RGB
+    "intrinsics": ("float32", ("N", 3, 3)),  # pixels of the stored image size
+    "cam_to_ego": ("float32", ("N", 4, 4)),
+    "lidar": ("float32", ("P", 4)),  # x, y, z (m, ego frame), intensity in [0, 1]
+}
+
+# What the loader yields per batch (B = batch size, C = map channels, P = max points).
+BATCH_KEYS: dict[str, tuple[str, tuple]] = {
+    "images": ("uint8", ("B", "N", "H", "W", 3)),
+    "intrinsics": ("float32", ("B", "N", 3, 3)),
+    "cam_to_ego": ("float32", ("B", "N", 4, 4)),
+    "points": ("float32", ("B", "P", 4)),  # zero-padded
+    "points_mask": ("bool", ("B", "P")),  # True for real points
+    "bev_gt": ("float32", ("B", "C", 128, 128)),  # {0, 1} map cut out at the GT pose
+    "tile": ("float32", ("B", "C", 256, 256)),  # {0, 1} map tile around the prior
+    "pose_tile": ("float32", ("B", 3)),  # GT (dx, dy, yaw) relative to the tile centre
+    # Metadata kept in NumPy (never passed into jit):
+    "tile_center": ("float64", ("B", 2)),  # world (x, y) of the tile centre (snapped prior)
+    "pose": ("float64", ("B", 3)),  # GT world pose
+}
+
+
+class SchemaError(ValueError):
+    """A sample or batch does not follow the schema; the message names the key."""
+
+
+def check_sample(sample: dict, where: str = "sample") -> dict:
+    """Validates a producer's sample dict; returns it. ``where`` names the source in errors."""
+    missing = set(SAMPLE_KEYS) - set(sample)
+    extra = set(sample) - set(SAMPLE_KEYS)
+    if missing or extra:
+        raise SchemaError(f"{where}: missing keys {sorted(missing)}, unexpected {sorted(extra)}")
+    dims: dict[str, int] = {}
+    for key, (dtype, shape) in SAMPLE_KEYS.items():
+        value = sample[key]
+        if dtype == "str":
+            if not isinstance(value, str) or not value:
+                raise SchemaError(f"{where}: key {key!r} must be a non-empty str, got {value!r}")
+            continue
+        arr = np.asarray(value)
+        if arr.dtype != np.dtype(dtype):
+            raise SchemaError(f"{where}: key {key!r} has dtype {arr.dtype}, expected {dtype}")
+        if arr.ndim != len(shape):
+            raise SchemaError(f"{where}: key {key!r} has shape {arr.shape}, expected {shape}")
+        for size, want in zip(arr.shape, shape, strict=True):
+            if isinstance(want, str):
+                if dims.setdefault(want, size) != size:
+                    raise SchemaError(
+                        f"{where}: key {key!r} dim {want}={size} disagrees with {dims[want]}"
+                    )
+            elif size != want:
+                raise SchemaError(f"{where}: key {key!r} has shape {arr.shape}, expected {shape}")
+        if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+            raise SchemaError(f"{where}: key {key!r} has non-finite values")
+    return sample
