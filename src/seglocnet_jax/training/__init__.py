@@ -1,0 +1,1 @@
+"""Training machinery: optimizer and state, the sharded step, checkpoints, logging, the loop."""

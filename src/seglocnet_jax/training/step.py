@@ -1,0 +1,83 @@
+"""The one jitted train step, sharded over a device mesh (batch on "data", params replicated).
+
+The same code runs on one device, on N simulated CPU devices and on many hosts: only the mesh
+changes. ``jax.pmap`` is not used (legacy in JAX >= 0.8).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.sharding import AxisType, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from seglocnet_jax.training.state import TrainState
+
+# (params, batch, rng) -> (scalar loss, dict of scalar metrics)
+LossFn = Callable[[dict, dict, jax.Array], tuple[jax.Array, dict]]
+
+# Batch keys that stay on the host (float64 world coordinates, strings): never sent to devices.
+HOST_ONLY_KEYS = ("tile_center", "pose", "sample_id", "city")
+
+
+def make_mesh(num_devices: int | None = None) -> jax.sharding.Mesh:
+    """A 1-D ("data",) mesh over the first ``num_devices`` devices (all by default)."""
+    devices = jax.devices()
+    n = len(devices) if num_devices is None else num_devices
+    if not 1 <= n <= len(devices):
+        raise ValueError(f"train.num_devices={n} but {len(devices)} devices are available")
+    return jax.make_mesh((n,), ("data",), axis_types=(AxisType.Auto,), devices=devices[:n])
+
+
+def device_batch(batch: dict, mesh: jax.sharding.Mesh) -> dict:
+    """Puts the device part of a host batch on the mesh, sharded along its leading axis."""
+    sharding = NamedSharding(mesh, P("data"))
+    n = mesh.devices.size
+    out = {}
+    for key, value in batch.items():
+        if key in HOST_ONLY_KEYS:
+            continue
+        value = np.asarray(value)
+        if value.shape[0] % n:
+            raise ValueError(
+                f"batch size {value.shape[0]} (key {key!r}) is not divisible by the "
+                f"{n} devices of the mesh; set train.batch_size to a multiple of {n}"
+            )
+        out[key] = jax.device_put(value, sharding)
+    return out
+
+
+def make_train_step(loss_fn: LossFn, optimizer: optax.GradientTransformation, mesh):
+    """Returns ``train_step(state, batch) -> (state, metrics)``, jitted once, state donated."""
+    replicated = NamedSharding(mesh, P())
+
+    def train_step(state: TrainState, batch: dict):
+        rng = jax.random.fold_in(jax.random.wrap_key_data(state.rng), state.step)  # typed key
+        (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+            state.params, batch, rng
+        )
+        updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        metrics = dict(metrics, loss=loss, grad_norm=optax.tree.norm(grads))
+        new_state = state.replace(step=state.step + 1, params=params, opt_state=opt_state)
+        return new_state, metrics
+
+    return jax.jit(train_step, donate_argnums=(0,), out_shardings=(replicated, replicated))
+
+
+def replicate(tree, mesh):
+    """Places a pytree (params, state) replicated on every device of the mesh."""
+    return jax.device_put(tree, NamedSharding(mesh, P()))
+
+
+def to_host(metrics: dict) -> dict[str, float]:
+    return {k: float(np.asarray(v)) for k, v in jax.device_get(metrics).items()}
+
+
+def tree_all_finite(tree) -> bool:
+    leaves = [x for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.floating)]
+    return all(bool(jnp.all(jnp.isfinite(x))) for x in leaves)
