@@ -93,3 +93,18 @@ def test_cell_offset_mapping():
     assert (dx, dy) == (32.0, 32.0)
     h, w = g.tile_offset_to_cell(dx, dy)
     assert (h, w) == (0.0, 128.0)
+
+
+def test_pose_from_matrix_reads_yaw_ccw_from_east_and_drops_tilt():
+    yaw, pitch = 2.5, 0.1
+    rz = np.array([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0],
+                   [0, 0, 1]])
+    ry = np.array([[math.cos(pitch), 0, math.sin(pitch)], [0, 1, 0],
+                   [-math.sin(pitch), 0, math.cos(pitch)]])
+    t = np.eye(4)
+    t[:3, :3] = rz @ ry
+    t[:3, 3] = [10.0, -3.0, 2.0]
+    np.testing.assert_allclose(g.pose_from_matrix(t), [10.0, -3.0, yaw], atol=1e-12)
+    # The ego forward axis maps to world (cos yaw, sin yaw), as ego_to_world says.
+    fwd = g.ego_to_world(g.pose_from_matrix(t), np.array([1.0, 0.0])) - [10.0, -3.0]
+    np.testing.assert_allclose(fwd, [math.cos(yaw), math.sin(yaw)], atol=1e-12)

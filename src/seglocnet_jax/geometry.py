@@ -155,6 +155,17 @@ def world_to_ego(pose, points):
     return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=-1)
 
 
+def pose_from_matrix(world_from_ego) -> np.ndarray:
+    """``(x, y, yaw)`` of a ``(4, 4)`` (or ``(3, 3)`` 2-D) world-from-ego transform.
+
+    The yaw is the ego forward axis (first column of the rotation) projected on the ground plane,
+    counterclockwise from east, wrapped; roll and pitch are dropped.
+    """
+    t = np.asarray(world_from_ego, np.float64)
+    n = t.shape[0] - 1  # 3 for SE(3), 2 for SE(2)
+    return np.array([t[0, n], t[1, n], float(wrap_angle(math.atan2(t[1, 0], t[0, 0])))])
+
+
 def bev_cell_centers_ego(size: int = BEV_SIZE, resolution: float = RESOLUTION) -> np.ndarray:
     """Ego-frame ``(forward, left)`` metres of each BEV pixel centre, shape ``(size, size, 2)``."""
     idx = (size / 2 - np.arange(size) - 0.5) * resolution  # row i -> forward, col j -> left

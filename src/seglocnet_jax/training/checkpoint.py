@@ -24,7 +24,7 @@ class CheckpointError(RuntimeError):
 class CheckpointConfig:
     keep_last: int = 2  # how many recent checkpoints to keep
     every_steps: int = 200  # save period (steps); the final step is always saved
-    best_metric: str = "recall_5m"  # validation metric that selects the best checkpoint
+    best_metric: str = "R@5m"  # validation metric that selects the best checkpoint
     best_mode: str = "max"
 
     def __post_init__(self):

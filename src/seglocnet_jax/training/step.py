@@ -21,7 +21,7 @@ from seglocnet_jax.training.state import TrainState
 LossFn = Callable[[dict, dict, jax.Array], tuple[jax.Array, dict]]
 
 # Batch keys that stay on the host (float64 world coordinates, strings): never sent to devices.
-HOST_ONLY_KEYS = ("tile_center", "pose", "sample_id", "city")
+HOST_ONLY_KEYS = ("tile_center", "pose", "sample_id", "city", "valid")
 
 
 def make_mesh(num_devices: int | None = None) -> jax.sharding.Mesh:

@@ -1,0 +1,237 @@
+"""The grain input pipeline: ArrayRecord shards -> fixed-shape NumPy batches (``BATCH_KEYS``).
+
+Training: globally shuffled (reshuffled every epoch), a fresh prior per epoch and record drawn
+from ``np.random.Generator`` that grain seeds with ``(seed, global index)``, the map tile cut on
+the fly around the snapped prior and the GT BEV cut at the GT pose from the cached city raster.
+Evaluation: file order, the stored seeded priors, the last batch padded by repeating the last
+record (``valid`` marks real rows) so that every batch has the same shape.
+
+Everything is NumPy and deterministic for a seed; ``iter(loader)`` returns grain's iterator whose
+``get_state()`` (a small JSON-able dict) / ``set_state()`` resume bit-identically.
+
+No worker processes by default: on 2 cores grain workers were slower than decoding in threads
+(DESIGN). If ``worker_count > 0`` under Hydra or pytest, call ``absl.flags.FLAGS.mark_as_parsed()``
+first or the workers crash (grain 0.2.18).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import grain
+import numpy as np
+
+from seglocnet_jax import geometry
+from seglocnet_jax.data.manifest import read_manifest, split_files
+from seglocnet_jax.data.records import RecordError, count_records, decode_sample
+
+
+@dataclasses.dataclass(frozen=True)
+class LoaderConfig:
+    """Loader knobs (``data.loader``; the batch size comes from the train/eval config).
+
+    Attributes:
+      max_points: LiDAR points per sample (P): more are subsampled evenly, fewer zero-padded.
+      num_threads: grain read threads (0 = decode in the calling thread).
+      prefetch: batches buffered ahead by the read threads.
+      worker_count: grain worker processes (0 = none; see the module docstring's absl trap).
+      num_epochs: training epochs to iterate (None = forever); evaluation always runs once.
+    """
+
+    max_points: int = 32768
+    num_threads: int = 2
+    prefetch: int = 4
+    worker_count: int = 0
+    num_epochs: int | None = None
+
+    def __post_init__(self):
+        if self.max_points < 1 or self.num_threads < 0 or self.worker_count < 0:
+            raise ValueError(
+                f"data.loader: max_points must be >= 1 and num_threads, worker_count >= 0, got "
+                f"{self.max_points}, {self.num_threads}, {self.worker_count}"
+            )
+
+
+class ShardSource:
+    """Random access over a split's shards (grain ``ArrayRecordDataSource``), decoding records.
+
+    Record counts are checked against the manifest when opened, so a truncated or missing shard
+    fails here, naming the file. With ``pad_to``, indices past the end repeat the last record
+    and carry ``valid = False``.
+    """
+
+    def __init__(self, files: list[tuple[str, int]], pad_to: int | None = None):
+        if not files:
+            raise RecordError("no shards to read")
+        for path, expected in files:
+            n = count_records(path)
+            if n != expected:
+                raise RecordError(
+                    f"{path}: {n} records, manifest expects {expected} (truncated shard?)"
+                )
+        self._paths = [p for p, _ in files]
+        self._starts = np.cumsum([0] + [c for _, c in files])  # (num_shards + 1,)
+        self._n = int(self._starts[-1])
+        self._len = max(self._n, pad_to or 0)
+        self._src = grain.sources.ArrayRecordDataSource(self._paths)
+
+    def __len__(self) -> int:
+        return self._len
+
+    def where(self, index: int) -> tuple[str, int]:
+        """``(shard path, record index in that shard)`` of a global record index."""
+        shard = int(np.searchsorted(self._starts, index, side="right") - 1)
+        return self._paths[shard], int(index - self._starts[shard])
+
+    def __getitem__(self, index: int) -> dict:
+        real = min(int(index), self._n - 1)
+        path, local = self.where(real)
+        where = f"{path} record {local}"
+        try:
+            raw = self._src[real]
+        except Exception as err:
+            raise RecordError(f"{where}: unreadable ({err})") from err
+        sample = decode_sample(raw, where)
+        sample["valid"] = np.bool_(index < self._n)
+        return sample
+
+    def __repr__(self) -> str:  # grain prints sources in its dataset summaries
+        return f"ShardSource({len(self._paths)} shards, {self._n} records)"
+
+
+def fit_points(lidar: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """LiDAR ``(n, 4)`` to ``(max_points, 4)`` float32 plus a ``(max_points,)`` bool mask.
+
+    More points than ``max_points`` are subsampled at evenly spaced indices (deterministic and
+    spread over the whole sweep, unlike a plain truncation of an azimuth-ordered scan).
+    """
+    n = len(lidar)
+    points = np.zeros((max_points, 4), np.float32)
+    mask = np.zeros((max_points,), bool)
+    if n > max_points:
+        idx = (np.arange(max_points, dtype=np.int64) * n) // max_points
+        points[:] = lidar[idx]
+        mask[:] = True
+    else:
+        points[:n] = lidar
+        mask[:n] = True
+    return points, mask
+
+
+class FrameTransform:
+    """One decoded record -> one batch row (``BATCH_KEYS`` without B, plus metadata).
+
+    ``rasters`` maps city -> an object with ``tile(x, y) -> ((C, 256, 256), (cx, cy))`` and
+    ``cut_bev(pose) -> (C, 128, 128)`` (``maps.CityRaster``). With ``train=True`` the prior is
+    drawn from the generator grain passes; otherwise the record's stored prior is used.
+    """
+
+    def __init__(self, rasters: dict, max_points: int, train: bool):
+        self.rasters = rasters
+        self.max_points = max_points
+        self.train = train
+
+    def __call__(self, sample: dict, rng: np.random.Generator | None = None) -> dict:
+        city = sample["city"]
+        if city not in self.rasters:
+            raise RecordError(
+                f"record {sample['sample_id']!r}: no map raster for city {city!r} "
+                f"(have {sorted(self.rasters)})"
+            )
+        raster = self.rasters[city]
+        pose = sample["pose"]  # (3,) world x, y (m), yaw (rad)
+        if self.train:
+            r = geometry.PRIOR_RANGE
+            prior = pose[:2] + rng.uniform(-r, r, size=2)
+        else:
+            prior = sample["prior"]
+        tile, (cx, cy) = raster.tile(float(prior[0]), float(prior[1]))
+        bev = raster.cut_bev(pose)
+        points, mask = fit_points(sample["lidar"], self.max_points)
+        return {
+            "images": sample["images"],  # (N, H, W, 3) uint8
+            "intrinsics": sample["intrinsics"],  # (N, 3, 3)
+            "cam_to_ego": sample["cam_to_ego"],  # (N, 4, 4)
+            "points": points,  # (P, 4)
+            "points_mask": mask,  # (P,)
+            "bev_gt": np.asarray(bev, np.float32),  # (C, 128, 128)
+            "tile": np.asarray(tile, np.float32),  # (C, 256, 256)
+            "pose_tile": np.array([pose[0] - cx, pose[1] - cy, pose[2]], np.float32),
+            "tile_center": np.array([cx, cy], np.float64),
+            "pose": np.asarray(pose, np.float64),
+            "valid": sample["valid"],
+            "sample_id": sample["sample_id"],
+            "city": city,
+        }
+
+
+class Loader:
+    """An iterable of batches; ``iter(loader)`` gives a checkpointable grain iterator.
+
+    Attributes:
+      dataset: the grain ``IterDataset``.
+      num_records: records in the split (without eval padding).
+      batches_per_epoch: full batches per pass over the split (eval: including the padded one).
+    """
+
+    def __init__(self, dataset, num_records: int, batches_per_epoch: int):
+        self.dataset = dataset
+        self.num_records = num_records
+        self.batches_per_epoch = batches_per_epoch
+
+    def __iter__(self):
+        return iter(self.dataset)
+
+
+def load_rasters(dataset_dir: str | os.PathLike, map_variant: str, cities) -> dict:
+    """City rasters of a prepared map variant (``maps/<variant>/<city>.npz``)."""
+    from seglocnet_jax.data.variants import load_variant  # maps dependency stays lazy
+
+    return load_variant(dataset_dir, map_variant, cities)
+
+
+def make_loader(dataset_dir: str | os.PathLike, split: str, map_variant: str | None,
+                batch_size: int, seed: int, train: bool, *, config: LoaderConfig | None = None,
+                rasters: dict | None = None) -> Loader:
+    """The loader of one split of a prepared dataset.
+
+    Args:
+      dataset_dir: directory with ``manifest.json`` (see :func:`data.prepare.prepare`).
+      split: ``train``, ``val``, ``test``, ``kouvola``, ... (manifest ``splits``).
+      map_variant: prepared variant name (``data.variants.variant_name``); ignored if
+        ``rasters`` is given.
+      batch_size: samples per batch (B).
+      seed: shuffling and training-prior seed (0 <= seed < 2**32).
+      train: shuffle, repeat ``config.num_epochs`` times, random priors, drop the remainder;
+        else file order, stored priors, one pass, last batch padded (``valid`` False).
+      rasters: city -> raster, to bypass the stored map variants.
+    """
+    cfg = config or LoaderConfig()
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    man = read_manifest(dataset_dir)
+    files = split_files(man, dataset_dir, split)
+    n = sum(c for _, c in files)
+    if n == 0:
+        raise RecordError(f"{dataset_dir}: split {split!r} has no records")
+    if rasters is None:
+        rasters = load_rasters(dataset_dir, map_variant, sorted(man["splits"][split]["cities"]))
+    transform = FrameTransform(rasters, cfg.max_points, train)
+    if train:
+        if n < batch_size:
+            raise RecordError(f"split {split!r} has {n} records < batch_size {batch_size}")
+        ds = grain.MapDataset.source(ShardSource(files)).seed(seed).shuffle()
+        ds = ds.repeat(cfg.num_epochs).random_map(transform)
+        ds = ds.batch(batch_size, drop_remainder=True)
+        batches = n // batch_size
+    else:
+        batches = -(-n // batch_size)
+        ds = grain.MapDataset.source(ShardSource(files, pad_to=batches * batch_size))
+        ds = ds.map(transform).batch(batch_size, drop_remainder=True)
+    it_ds = ds.to_iter_dataset(
+        grain.ReadOptions(num_threads=cfg.num_threads, prefetch_buffer_size=cfg.prefetch)
+    )
+    if cfg.worker_count > 0:
+        it_ds = it_ds.mp_prefetch(grain.MultiprocessingOptions(num_workers=cfg.worker_count))
+    return Loader(it_ds, num_records=n, batches_per_epoch=batches)

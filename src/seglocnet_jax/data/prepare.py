@@ -1,0 +1,301 @@
+"""Offline preparation: frames of a producer -> spatially split, seeded ArrayRecord shards.
+
+``prepare(cfg)`` is what the training app calls ("prepare the data if the shards are missing").
+Per city it builds a frame source (the simulator by default, :mod:`.sim_source`), drives a pool of
+poses, assigns spatially disjoint train / val / test frames in the main city (:mod:`.splits`)
+and a generalization-only split named after the test city, draws seeded priors, renders the
+sensors in batches and writes shards atomically. Sensors are prepared once; map variants
+(:mod:`.variants`) only rasterize.
+
+Resumable: everything is a pure function of the config, a shard path that exists is complete
+(atomic rename), and each shard is rendered from its own seed, so an interrupted run resumed
+writes exactly the shards a single run would have written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from collections.abc import Callable
+from typing import Protocol
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from seglocnet_jax.data import manifest as mf
+from seglocnet_jax.data import splits as sp
+from seglocnet_jax.data.records import (
+    RecordError,
+    count_records,
+    encode_sample,
+    shard_name,
+    write_shard,
+)
+from seglocnet_jax.data.variants import VariantConfig, ensure_variant
+
+
+class FrameSource(Protocol):
+    """What preparation needs from a producer of frames in one city (world frame metres)."""
+
+    def drive(self, rng: np.random.Generator, num_frames: int) -> np.ndarray:
+        """Poses ``(num_frames, 3)`` along plausible trajectories."""
+
+    def render(self, poses: np.ndarray, seed: int) -> list[dict]:
+        """One sample dict (``schema.SAMPLE_KEYS``) per pose, deterministic for ``seed``."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PrepareConfig:
+    """The ``data`` config group (see ``conf/data/quick.yaml``).
+
+    Attributes:
+      name: dataset directory name under ``root``.
+      root: output root (not part of the dataset identity).
+      source: "sim" renders with the simulator; any other name (a converter's) means the
+        directory was written by that converter and is only checked here.
+      seed: master seed of worlds, trajectories, splits, priors and rendering.
+      city: main city: train / val / test.
+      test_city: generalization-only city (its split has the city's name); None to skip.
+      num_train, num_val, num_test, num_test_city: frames per split.
+      pool_factor: poses driven per requested frame per round (spares for the split clearance).
+      max_rounds: driving rounds before giving up on filling the splits.
+      shard_size: records per shard.
+      render_batch: poses per simulator call (fixed: it defines the render seeds).
+      png_level: PNG compression level of the stored images (lossless at any level).
+      split: spatial split assignment (stripes + clearance).
+      sim: simulator options, passed through to the frame source.
+      map_variants: map variants rasterized after the sensors (``variants.VariantConfig`` dicts).
+    """
+
+    name: str = "sim_quick"
+    root: str = "data_cache"
+    source: str = "sim"
+    seed: int = 0
+    city: str = "helsinki"
+    test_city: str | None = "kouvola"
+    num_train: int = 2000
+    num_val: int = 300
+    num_test: int = 300
+    num_test_city: int = 300
+    pool_factor: float = 2.0
+    max_rounds: int = 8
+    shard_size: int = 250
+    render_batch: int = 16
+    png_level: int = 1
+    split: sp.SplitConfig = sp.SplitConfig()
+    sim: dict = dataclasses.field(default_factory=dict)
+    map_variants: tuple[dict, ...] = ({"kind": "hd"},)
+
+    def __post_init__(self):
+        for i, spec in enumerate(self.map_variants):
+            try:
+                VariantConfig(**spec)
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"data.map_variants[{i}] = {spec!r}: {err}") from err
+        counts = (self.num_train, self.num_val, self.num_test, self.num_test_city)
+        if min(counts) < 1 or self.shard_size < 1 or self.render_batch < 1:
+            raise ValueError(
+                "data.num_train/num_val/num_test/num_test_city, shard_size and render_batch "
+                f"must be >= 1, got {counts}, {self.shard_size}, {self.render_batch}"
+            )
+
+    def identity(self) -> dict:
+        """The JSON-able config that defines the sensor shards (resume/loader check)."""
+        d = dataclasses.asdict(self)
+        for key in ("root", "map_variants"):
+            d.pop(key)
+        return json.loads(json.dumps(d))
+
+
+@dataclasses.dataclass(frozen=True)
+class SplitPlan:
+    """Frames of one split: ``poses`` (n, 3) and ``priors`` (n, 2) world metres/radians."""
+
+    name: str
+    city: str
+    poses: np.ndarray
+    priors: np.ndarray
+
+
+def _seed(*parts: int) -> int:
+    return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1)[0])
+
+
+def _drive_pool(source: FrameSource, seed: int, city_idx: int, round_: int, n: int) -> np.ndarray:
+    rng = np.random.default_rng([seed, city_idx, round_, 0xD21])
+    poses = np.asarray(source.drive(rng, n), np.float64)  # (n, 3)
+    if poses.ndim != 2 or poses.shape[1] != 3 or not np.all(np.isfinite(poses)):
+        raise ValueError(f"frame source drive() returned {poses.shape} poses, expected (n, 3)")
+    return poses
+
+
+def plan_main_city(source: FrameSource, cfg: PrepareConfig) -> list[SplitPlan]:
+    """Train / val / test frames of ``cfg.city``: disjoint BEVs, seeded priors."""
+    want = {"train": cfg.num_train, "val": cfg.num_val, "test": cfg.num_test}
+    names = list(want)
+    per_round = int(np.ceil(cfg.pool_factor * sum(want.values())))
+    pool = np.zeros((0, 3))
+    for round_ in range(cfg.max_rounds):
+        pool = np.concatenate([pool, _drive_pool(source, cfg.seed, 0, round_, per_round)])
+        labels = sp.assign_stripes(pool[:, :2], want, cfg.split, cfg.seed)
+        labels = sp.assign_frames(pool[:, :2], labels, names, cfg.split)
+        avail = {n: np.flatnonzero(labels == n) for n in want}
+        if all(len(avail[n]) >= want[n] for n in want):
+            break
+    else:
+        have = {n: len(avail[n]) for n in want}
+        raise sp.SplitError(
+            f"{cfg.city}: after {cfg.max_rounds} rounds of {per_round} poses the splits hold "
+            f"{have}, need {want}; raise data.max_rounds / data.pool_factor or lower the counts"
+        )
+    plans = []
+    for stream, name in enumerate(names):
+        idx = avail[name][sp.select_evenly(len(avail[name]), want[name])]
+        poses = pool[idx]
+        priors = sp.seeded_priors(poses[:, :2], cfg.seed, stream)
+        plans.append(SplitPlan(name, cfg.city, poses, priors))
+    sp.check_disjoint({p.name: p.poses[:, :2] for p in plans})
+    return plans
+
+
+def plan_test_city(source: FrameSource, cfg: PrepareConfig) -> SplitPlan:
+    """The generalization split: ``cfg.num_test_city`` frames spread over one drive."""
+    n = cfg.num_test_city
+    pool = _drive_pool(source, cfg.seed, 1, 0, int(np.ceil(cfg.pool_factor * n)))
+    poses = pool[sp.select_evenly(len(pool), n)]
+    priors = sp.seeded_priors(poses[:, :2], cfg.seed, 3)
+    return SplitPlan(cfg.test_city, cfg.test_city, poses, priors)
+
+
+def _planned_splits(plans: list[SplitPlan], shard_size: int) -> dict:
+    out = {}
+    for plan in plans:
+        n = len(plan.poses)
+        count = max(1, -(-n // shard_size))
+        shards = [
+            {"file": f"sensors/{plan.name}/{shard_name(plan.name, i, count)}",
+             "count": min(shard_size, n - i * shard_size)}
+            for i in range(count)
+        ]
+        out[plan.name] = {"shards": shards, "count": n, "cities": {plan.city: n}}
+    return out
+
+
+def write_plan(dataset_dir: str, plan: SplitPlan, split_entry: dict, render: Callable,
+               cfg: PrepareConfig, split_idx: int, progress=None) -> int:
+    """Renders and writes the missing shards of one split; returns how many were written.
+
+    Existing shards are kept after checking their record count (a mismatch raises and leaves
+    the file alone).
+    """
+    written = 0
+    for shard_idx, entry in enumerate(split_entry["shards"]):
+        path = os.path.join(dataset_dir, entry["file"])
+        start = shard_idx * cfg.shard_size
+        stop = start + entry["count"]
+        if os.path.exists(path):
+            n = count_records(path)
+            if n != entry["count"]:
+                raise RecordError(
+                    f"{path}: existing shard has {n} records, expected {entry['count']}; "
+                    "delete it to have it written again"
+                )
+            if progress is not None:
+                progress.update(stop - start)
+            continue
+        records = []
+        for b0 in range(start, stop, cfg.render_batch):
+            b1 = min(b0 + cfg.render_batch, stop)
+            seed = _seed(cfg.seed, split_idx, b0, 0x7E4)  # b0: frame index in the split
+            samples = render(plan.poses[b0:b1], seed)
+            if len(samples) != b1 - b0:
+                raise ValueError(f"render returned {len(samples)} samples for {b1 - b0} poses")
+            for i, sample in enumerate(samples, start=b0):
+                sample = dict(sample, sample_id=f"{plan.city}-{plan.name}-{i:06d}",
+                              prior=np.asarray(plan.priors[i], np.float64))
+                records.append(encode_sample(sample, compress_level=cfg.png_level,
+                                             where=f"{path} record {i - start}"))
+            if progress is not None:
+                progress.update(b1 - b0)
+        write_shard(path, records)
+        written += 1
+    return written
+
+
+def default_source_factory(cfg: PrepareConfig) -> Callable[[str], FrameSource]:
+    """City name -> the simulator's frame source (imported lazily: sim is optional here)."""
+    from seglocnet_jax.data.sim_source import SimSource
+
+    return lambda city: SimSource(city, cfg.sim, cfg.seed)
+
+
+def prepare(cfg: PrepareConfig, source_factory: Callable[[str], FrameSource] | None = None,
+            *, variants=None) -> str:
+    """Prepares (or resumes, or just checks) ``<cfg.root>/<cfg.name>``; returns that directory.
+
+    ``source_factory(city) -> FrameSource`` defaults to the simulator. ``variants`` (a sequence
+    of ``variants.VariantConfig``; None: those of ``cfg.map_variants``) are rasterized afterwards
+    unless already stored (:mod:`.variants`).
+    """
+    dataset_dir = os.path.join(cfg.root, cfg.name)
+    identity = cfg.identity()
+    man = None
+    if cfg.source != "sim" and source_factory is None:
+        man = mf.read_manifest(dataset_dir)  # a converter wrote it; names the missing file
+        if not man["complete"] or not _all_shards_exist(man, dataset_dir):
+            raise mf.ManifestError(f"{mf.manifest_path(dataset_dir)}: conversion is incomplete "
+                                   f"(source {cfg.source!r}); run the converter again")
+    elif os.path.exists(mf.manifest_path(dataset_dir)):
+        man = mf.read_manifest(dataset_dir)
+        mf.check_config(man, identity, dataset_dir)
+    factory = source_factory
+    if factory is None and cfg.source == "sim":
+        factory = default_source_factory(cfg)
+    sources = {}
+    if man is None or not man["complete"] or not _all_shards_exist(man, dataset_dir):
+        sources[cfg.city] = factory(cfg.city)
+        plans = plan_main_city(sources[cfg.city], cfg)
+        if cfg.test_city:
+            sources[cfg.test_city] = factory(cfg.test_city)
+            plans.append(plan_test_city(sources[cfg.test_city], cfg))
+        planned = _planned_splits(plans, cfg.shard_size)
+        if man is None:
+            os.makedirs(dataset_dir, exist_ok=True)
+            man = mf.new_manifest(identity, planned)
+            mf.write_json_atomic(mf.manifest_path(dataset_dir), man)
+        elif man["splits"] != planned:
+            raise mf.ManifestError(
+                f"{mf.manifest_path(dataset_dir)}: planned shards differ from the stored ones "
+                "although the config matches (code changed?); prepare into a new directory"
+            )
+        total = sum(len(p.poses) for p in plans)
+        with tqdm(total=total, desc=f"prepare {cfg.name}", unit="frame") as bar:
+            for split_idx, plan in enumerate(plans):
+                write_plan(dataset_dir, plan, planned[plan.name], sources[plan.city].render,
+                           cfg, split_idx, bar)
+        man = dict(man, complete=True)
+        mf.write_json_atomic(mf.manifest_path(dataset_dir), man)
+    if variants is None:
+        variants = [VariantConfig(**spec) for spec in cfg.map_variants]
+    for vcfg in variants:
+        ensure_variant(dataset_dir, vcfg, factory, sources)
+    return dataset_dir
+
+
+def prepare_for_training(cfg: PrepareConfig, variant: VariantConfig,
+                         source_factory: Callable[[str], FrameSource] | None = None):
+    """What the training app calls: prepares what is missing (sensors, ``cfg.map_variants`` and
+    ``variant``) and returns ``(dataset_dir, variant name)`` for :func:`loader.make_loader`."""
+    wanted = [VariantConfig(**spec) for spec in cfg.map_variants]
+    if variant not in wanted:
+        wanted.append(variant)
+    return prepare(cfg, source_factory, variants=wanted), variant.name
+
+
+def _all_shards_exist(man: dict, dataset_dir: str) -> bool:
+    return all(
+        os.path.exists(os.path.join(dataset_dir, s["file"]))
+        for split in man["splits"].values()
+        for s in split["shards"]
+    )

@@ -1,0 +1,172 @@
+"""Loader: fixed-shape batches per the schema, determinism, per-epoch priors, resume, errors."""
+
+import itertools
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from data_synth import Factory, random_raster, small_config
+from seglocnet_jax import geometry
+from seglocnet_jax.data import loader as ld
+from seglocnet_jax.data import manifest as mf
+from seglocnet_jax.data import prepare as pp
+from seglocnet_jax.data import records
+from seglocnet_jax.data.schema import BATCH_KEYS
+
+B, P = 4, 48
+CFG = ld.LoaderConfig(max_points=P, num_threads=0, prefetch=0)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("loader")
+    ddir = pp.prepare(small_config(root), Factory(), variants=())
+    raster = random_raster(0, size_m=1300.0)
+    return ddir, {"helsinki": raster, "kouvola": raster}
+
+
+def _loader(dataset, split="train", seed=0, train=True, **kw):
+    ddir, rasters = dataset
+    cfg = ld.LoaderConfig(**{**CFG.__dict__, **kw})
+    return ld.make_loader(ddir, split, None, B, seed, train, config=cfg, rasters=rasters)
+
+
+def _take(it, n):
+    return list(itertools.islice(it, n))
+
+
+def _same(a, b):
+    return all(np.array_equal(x[k], y[k]) for x, y in zip(a, b, strict=True) for k in x)
+
+
+def test_batches_follow_the_schema(dataset):
+    raster = dataset[1]["helsinki"]
+    batch = next(iter(_loader(dataset)))
+    dims = {"B": B, "P": P, "N": 2, "H": 8, "W": 12, "C": 2}
+    for key, (dtype, shape) in BATCH_KEYS.items():
+        want = tuple(dims.get(s, s) for s in shape)
+        assert batch[key].dtype == np.dtype(dtype) and batch[key].shape == want, key
+    for i in range(B):
+        pose, centre = batch["pose"][i], batch["tile_center"][i]
+        np.testing.assert_allclose(batch["pose_tile"][i], [*(pose[:2] - centre), pose[2]],
+                                   atol=1e-4)
+        assert np.abs(pose[:2] - centre).max() <= geometry.PRIOR_RANGE + 0.25
+        tile, (cx, cy) = raster.tile(*centre)  # the centre is already on the grid
+        assert (cx, cy) == tuple(centre)
+        np.testing.assert_array_equal(batch["tile"][i], tile)
+        np.testing.assert_array_equal(batch["bev_gt"][i], raster.cut_bev(pose))
+        n = batch["points_mask"][i].sum()
+        assert not batch["points"][i][n:].any()
+    assert batch["valid"].all()
+
+
+def test_same_seed_same_batches_other_seed_other_priors(dataset):
+    a = _take(iter(_loader(dataset, seed=1)), 3)
+    b = _take(iter(_loader(dataset, seed=1)), 3)
+    c = _take(iter(_loader(dataset, seed=2)), 3)
+    assert _same(a, b)
+    assert not np.array_equal(a[0]["sample_id"], c[0]["sample_id"])
+    threaded = _take(iter(_loader(dataset, seed=1, num_threads=2, prefetch=2)), 3)
+    assert _same(a, threaded)
+
+
+def test_priors_change_every_epoch(dataset):
+    loader = _loader(dataset, seed=0, num_epochs=2)
+    assert loader.batches_per_epoch == 24 // B
+    batches = list(loader)
+    assert len(batches) == 2 * 24 // B
+    centres = [{}, {}]
+    for e, chunk in enumerate((batches[:6], batches[6:])):
+        for b in chunk:
+            centres[e].update(zip(b["sample_id"], map(tuple, b["tile_center"]), strict=True))
+    assert set(centres[0]) == set(centres[1]) and len(centres[0]) == 24  # each record once
+    assert sum(centres[0][k] != centres[1][k] for k in centres[0]) >= 20
+
+
+def test_iterator_state_resumes_identically(dataset):
+    it = iter(_loader(dataset, seed=3, num_epochs=2))
+    _take(it, 4)
+    state = it.get_state()
+    assert state == json.loads(json.dumps(state))  # JSON-able
+    rest = _take(it, 5)  # crosses the epoch boundary
+    it2 = iter(_loader(dataset, seed=3, num_epochs=2))
+    it2.set_state(state)
+    assert _same(rest, _take(it2, 5))
+
+
+def test_eval_uses_stored_priors_and_pads_the_last_batch(dataset):
+    ddir, _ = dataset
+    man = mf.read_manifest(ddir)
+    stored = {}
+    for path, n in mf.split_files(man, ddir, "kouvola"):
+        for r in records.read_shard(path, n):
+            s = records.decode_sample(r)
+            stored[s["sample_id"]] = s["prior"]
+    loader = _loader(dataset, "kouvola", train=False)
+    batches = list(loader) + list(loader)  # two passes, same content
+    assert len(batches) == 2 * loader.batches_per_epoch == 4  # 6 records, B = 4
+    assert _same(batches[:2], batches[2:])
+    valid = np.concatenate([b["valid"] for b in batches[:2]])
+    np.testing.assert_array_equal(valid, [True] * 6 + [False] * 2)
+    grid = dataset[1]["kouvola"].grid
+    for b in batches[:2]:
+        for sid, centre in zip(b["sample_id"], b["tile_center"], strict=True):
+            _, _, cx, cy = geometry.tile_window(grid, *stored[sid])
+            np.testing.assert_array_equal(centre, [cx, cy])
+
+
+def test_fit_points_pads_and_subsamples_deterministically():
+    lidar = np.arange(40, dtype=np.float32).reshape(10, 4)
+    pts, mask = ld.fit_points(lidar, 16)
+    np.testing.assert_array_equal(pts[:10], lidar)
+    assert mask.sum() == 10 and not pts[10:].any()
+    pts, mask = ld.fit_points(lidar, 4)
+    assert mask.all()
+    np.testing.assert_array_equal(pts[:, 0], lidar[[0, 2, 5, 7], 0])
+
+
+def _copy(dataset, tmp_path):
+    dst = tmp_path / "copy"
+    shutil.copytree(dataset[0], dst)
+    man = mf.read_manifest(dst)
+    return dst, mf.split_files(man, dst, "train")
+
+
+def test_truncated_or_missing_shard_is_named(dataset, tmp_path):
+    ddir, files = _copy(dataset, tmp_path)
+    path, _ = files[1]
+    data = open(path, "rb").read()
+    open(path, "wb").write(data[: len(data) // 2])
+    with pytest.raises(records.RecordError, match=os.path.basename(path)):
+        ld.make_loader(ddir, "train", None, B, 0, True, config=CFG, rasters=dataset[1])
+    os.remove(path)
+    with pytest.raises(records.RecordError, match=f"{os.path.basename(path)}: shard file is miss"):
+        ld.make_loader(ddir, "train", None, B, 0, True, config=CFG, rasters=dataset[1])
+    with pytest.raises(mf.ManifestError, match="no split 'nope'"):
+        ld.make_loader(ddir, "nope", None, B, 0, True, config=CFG, rasters=dataset[1])
+
+
+def test_corrupt_record_is_named_with_file_and_index(dataset, tmp_path):
+    ddir, files = _copy(dataset, tmp_path)
+    path, _ = files[0]
+    data = bytearray(open(path, "rb").read())
+    at = [i for i in range(len(data) - 4) if data[i : i + 4] == records.MAGIC]
+    assert len(at) == 10  # one record per chunk (group_size:1), stored as is
+    data[at[3] + 200] ^= 0xFF  # inside record 3's payload: the chunk hash no longer matches
+    open(path, "wb").write(bytes(data))
+    source = ld.ShardSource(files)
+    for i in range(3):
+        source[i]  # the other records stay readable
+    with pytest.raises(records.RecordError, match=rf"{os.path.basename(path)} record 3"):
+        source[3]
+
+
+def test_missing_city_raster_is_named(dataset):
+    ddir, rasters = dataset
+    it = iter(ld.make_loader(ddir, "val", None, B, 0, False, config=CFG,
+                             rasters={"kouvola": rasters["kouvola"]}))
+    with pytest.raises(records.RecordError, match="no map raster for city 'helsinki'"):
+        next(it)
