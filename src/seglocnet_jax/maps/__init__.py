@@ -1,0 +1,47 @@
+"""Maps from real OpenStreetMap: reading (pyosmium), projection (pyproj) and the unified binary
+``(C, H, W)`` raster (rasterio) with its tiles and GT BEV labels."""
+
+from seglocnet_jax.maps.config import CitySource, configs_from_section
+from seglocnet_jax.maps.osm import (
+    DRIVABLE_HIGHWAYS,
+    EMBEDDED_CITIES,
+    Building,
+    CityGeometry,
+    MapError,
+    Road,
+    embedded_city_path,
+    load_city,
+)
+from seglocnet_jax.maps.projection import Projection, ProjectionError, make_projection
+from seglocnet_jax.maps.raster import (
+    CHANNELS,
+    CityRaster,
+    MapConfig,
+    MapConfigError,
+    buffer_roads,
+    rasterize,
+    rasterize_geometries,
+)
+
+__all__ = [
+    "CHANNELS",
+    "DRIVABLE_HIGHWAYS",
+    "EMBEDDED_CITIES",
+    "Building",
+    "CityGeometry",
+    "CityRaster",
+    "CitySource",
+    "MapConfig",
+    "MapConfigError",
+    "MapError",
+    "Projection",
+    "ProjectionError",
+    "Road",
+    "buffer_roads",
+    "configs_from_section",
+    "embedded_city_path",
+    "load_city",
+    "make_projection",
+    "rasterize",
+    "rasterize_geometries",
+]

