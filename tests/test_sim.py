@@ -1,0 +1,226 @@
+"""The simulator: a tiny hand-made city renders valid, deterministic, geometrically consistent
+frames, and trajectories stay on the road respecting one-way streets."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+import pytest
+import shapely
+
+from seglocnet_jax import geometry
+from seglocnet_jax.data.schema import check_sample
+from seglocnet_jax.sim import SensorConfig, Simulator, WorldConfig, build_world, drive
+from seglocnet_jax.sim import render as rn
+from seglocnet_jax.sim.classes import Thing
+from seglocnet_jax.sim.trajectory import lane_poses, sample_poses
+
+
+@dataclasses.dataclass(frozen=True)
+class _Road:
+    geometry: object
+    highway: str
+    lanes: int | None = None
+    width: float | None = None
+    oneway: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class _Building:
+    geometry: object
+    height: float | None = None
+    levels: float | None = None
+    tags: dict = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class _City:
+    name: str
+    roads: tuple
+    buildings: tuple
+    bounds: tuple
+
+
+def tiny_city() -> _City:
+    """A 3x3 street grid (160 m), a 4-lane avenue, a one-way street (eastbound), 8 blocks."""
+    roads = [
+        _Road(shapely.LineString([(0, 0), (80, 0), (160, 0)]), "residential"),
+        _Road(shapely.LineString([(0, 80), (80, 80), (160, 80)]), "secondary", lanes=4),
+        _Road(shapely.LineString([(0, 160), (80, 160), (160, 160)]), "residential", oneway=True),
+    ]
+    roads += [_Road(shapely.LineString([(x, 0), (x, 80), (x, 160)]), "tertiary")
+              for x in (0.0, 80.0, 160.0)]
+    blds = []
+    for bx in (0, 80):
+        for by in (0, 80):
+            blds.append(_Building(shapely.box(bx + 14, by + 14, bx + 36, by + 36),
+                                  tags={"building:levels": "4"}))
+            blds.append(_Building(shapely.box(bx + 44, by + 14, bx + 66, by + 66),
+                                  tags={"height": "12"}))
+    return _City("tiny", tuple(roads), tuple(blds), (-20.0, -20.0, 180.0, 180.0))
+
+
+EXACT = dict(missing_buildings=0.0, extra_buildings=0.0, shifted_buildings=0.0)
+SENSORS = SensorConfig(image_height=32, image_width=80, lidar_beams=16, lidar_azimuths=256,
+                       max_range=50.0, range_noise=0.0, dropout=0.0, chunk=2)
+
+
+@pytest.fixture(scope="module")
+def city():
+    return tiny_city()
+
+
+@pytest.fixture(scope="module")
+def world(city):
+    return build_world(city, WorldConfig(**EXACT), seed=3)
+
+
+@pytest.fixture(scope="module")
+def sim(world):
+    return Simulator(world, SENSORS)
+
+
+@pytest.fixture(scope="module")
+def poses(world):
+    return drive(world, np.random.default_rng(0), 3, spacing_m=20.0)
+
+
+@pytest.fixture(scope="module")
+def arrays(sim, poses):
+    return sim.render_arrays(poses, seed=11)
+
+
+def test_render_gives_valid_samples_quickly(sim, poses):
+    sim.render(poses[:2], seed=0)  # compile
+    t0 = time.perf_counter()
+    samples = sim.render(poses, seed=0)
+    assert time.perf_counter() - t0 < 10.0
+    assert len(samples) == len(poses)
+    for i, s in enumerate(samples):
+        check_sample(s)
+        assert s["city"] == "tiny" and s["sample_id"].startswith("tiny-")
+        np.testing.assert_array_equal(s["pose"], poses[i])
+        assert s["images"].shape == (6, 32, 80, 3)
+        assert s["images"].std() > 10  # not a blank frame
+        assert len(s["lidar"]) > 500 and s["lidar"][:, 3].min() >= 0
+        assert s["lidar"][:, 3].max() <= 1
+
+
+def test_render_is_deterministic_per_seed(sim, poses, arrays):
+    again = sim.render_arrays(poses, seed=11)
+    for key in ("images", "lidar", "lidar_valid"):
+        np.testing.assert_array_equal(arrays[key], again[key])
+    other = sim.render_arrays(poses, seed=12)
+    assert not np.array_equal(arrays["images"], other["images"])
+    sim.render_arrays(poses[:1] + np.array([1.0, 0.5, 0.3]), seed=5)  # other poses, padded
+    assert sim._render._cache_size() == 1  # compiled once per sensor config
+
+
+def test_pixels_see_what_the_stored_calibration_projects(sim, arrays):
+    """The hit point of each pixel's rendered ray, projected with the stored intrinsics and
+    cam_to_ego, lands on that pixel (pins the camera conventions of the samples)."""
+    k, t = sim.intrinsics.astype(np.float64), sim.cam_to_ego.astype(np.float64)
+    pts = arrays["cam_points"][0].astype(np.float64)  # (N, H, W, 3) ego
+    hit = arrays["cam_kind"][0] != rn.SKY
+    assert hit.mean() > 0.3
+    for c in range(len(k)):
+        ego_to_cam = np.linalg.inv(t[c])
+        p = pts[c][hit[c]]
+        cam = p @ ego_to_cam[:3, :3].T + ego_to_cam[:3, 3]
+        assert np.all(cam[:, 2] > 0)
+        uv = cam @ k[c].T
+        uv = uv[:, :2] / uv[:, 2:]
+        v, u = np.nonzero(hit[c])
+        np.testing.assert_allclose(uv[:, 0], u, atol=0.05)
+        np.testing.assert_allclose(uv[:, 1], v, atol=0.05)
+
+
+def test_lidar_returns_lie_on_map_building_walls(city, arrays, poses):
+    """Without noise, elevated non-distractor returns are on the OSM buildings' walls."""
+    walls = shapely.union_all([shapely.boundary(b.geometry) for b in city.buildings])
+    near = 0
+    for i, pose in enumerate(poses):
+        pts = arrays["lidar"][i][arrays["lidar_valid"][i]]
+        thing = arrays["lidar_thing"][i][arrays["lidar_valid"][i]]
+        sel = (pts[:, 2] > 0.5) & (thing == Thing.BUILDING)
+        xy = geometry.ego_to_world(pose, pts[sel, :2])
+        dist = shapely.distance(walls, shapely.points(xy))
+        assert np.quantile(dist, 0.99) < 0.5, np.quantile(dist, [0.5, 0.99])
+        near += sel.sum()
+        # Ground returns are on the ground plane.
+        ground = arrays["lidar"][i][arrays["lidar_valid"][i] & (arrays["lidar_thing"][i] == 0)]
+        np.testing.assert_allclose(ground[:, 2], 0.0, atol=1e-3)
+    assert near > 200
+
+
+def test_trajectories_stay_on_road_and_respect_oneway(world):
+    poses = drive(world, np.random.default_rng(5), 400, spacing_m=3.0)
+    assert poses.shape == (400, 3)
+    np.testing.assert_array_equal(poses, drive(world, np.random.default_rng(5), 400, 3.0))
+    assert shapely.contains_xy(world.drivable, poses[:, 0], poses[:, 1]).all()
+    # The one-way street at y = 160 runs east only (world road offset is <= 1.5 m).
+    on_oneway = ((np.abs(poses[:, 1] - 160) < 4) & (poses[:, 0] > 10) & (poses[:, 0] < 150)
+                 & (np.abs(poses[:, 0] - 80) > 10))  # away from the crossing streets
+    assert on_oneway.sum() > 5
+    assert np.all(np.cos(poses[on_oneway, 2]) > 0.9)
+    # Two-way streets carry both directions, each on its right-hand side.
+    south = (np.abs(poses[:, 1]) < 5) & (poses[:, 0] > 10) & (poses[:, 0] < 70)
+    east = south & (np.cos(poses[:, 2]) > 0.9)
+    west = south & (np.cos(poses[:, 2]) < -0.9)
+    if east.any() and west.any():
+        assert poses[east, 1].mean() < poses[west, 1].mean()
+    # Consecutive frames of a route are spacing_m apart along the heading.
+    step = np.diff(poses[:, :2], axis=0)
+    dist = np.linalg.norm(step, axis=1)
+    cont = np.abs(dist - 3.0) < 0.5
+    heading = np.arctan2(step[cont, 1], step[cont, 0])
+    assert np.median(np.abs(np.angle(np.exp(1j * (heading - poses[:-1][cont, 2]))))) < 0.1
+
+
+def test_region_and_enumeration_apis(world):
+    region = shapely.box(60, 60, 170, 170)
+    p = drive(world, np.random.default_rng(1), 50, 4.0, region=region)
+    assert len(p) == 50 and shapely.contains_xy(region, p[:, 0], p[:, 1]).all()
+    q = sample_poses(world, np.random.default_rng(2), 30, region=region)
+    assert len(q) == 30 and shapely.contains_xy(world.drivable, q[:, 0], q[:, 1]).all()
+    e = lane_poses(world, 5.0, region=region)
+    assert len(e) > 50 and shapely.contains_xy(region, e[:, 0], e[:, 1]).all()
+
+
+def test_world_widths_offsets_and_discrepancies(city):
+    world = build_world(city, WorldConfig(), seed=1)
+    widths = {r.highway: r.width for r in world.roads}
+    assert widths["secondary"] == pytest.approx(4 * 3.25)  # lanes=4 tag
+    assert widths["residential"] < widths["secondary"]
+    lateral = []
+    for road in world.roads:  # world centre is displaced 0.5-1.5 m from the OSM centreline
+        np.testing.assert_array_equal(road.osm_centerline[[0, -1]],
+                                      np.asarray(city.roads[road.osm_index].geometry.coords)[
+                                          [0, -1]])
+        shift = np.linalg.norm(road.centerline - road.osm_centerline, axis=1)
+        assert shift.min() >= 0.5 - 1e-9 and shift.max() <= 1.5 + 1e-9
+        assert np.abs(np.diff(shift)).max() < 0.1  # smoothly (vertices 2 m apart)
+        osm = city.roads[road.osm_index].geometry
+        lateral.append(shapely.distance(osm, shapely.points(road.centerline)))
+    assert np.mean(np.concatenate(lateral)) > 0.3
+    extra = build_world(city, WorldConfig(**dict(EXACT, extra_buildings=0.5)), seed=1)
+    assert len(extra.buildings) == len(city.buildings) + 4  # extra buildings no map has
+    assert not any(extra.drivable.intersects(b) for b in extra.buildings[len(city.buildings):])
+    world = build_world(city, WorldConfig(missing_buildings=0.3, extra_buildings=0.0), seed=1)
+    kept = set(world.osm_buildings_kept.tolist())
+    assert len(kept) < len(city.buildings)
+    for i, b in enumerate(city.buildings):  # missing buildings are not in the raster
+        row, col = world.grid.world_to_pixel(*b.geometry.centroid.coords[0])
+        present = world.thing[int(row), int(col)] == Thing.BUILDING
+        assert present == (i in kept)
+    assert world.thing.max() == Thing.PEDESTRIAN or (world.thing == Thing.CAR).any()
+
+
+def test_bad_input_is_reported(sim):
+    with pytest.raises(ValueError, match="outside the world"):
+        sim.render(np.array([[5000.0, 5000.0, 0.0]]), seed=0)
+    with pytest.raises(ValueError, match="unknown sensor preset"):
+        SensorConfig.preset("gpu-huge")
+    assert SensorConfig.preset("paper").image_width == 800
