@@ -1,0 +1,184 @@
+"""Real dataset -> the prepared-dataset layout the loader reads (same as the simulator's).
+
+``convert(reader, cfg)`` writes ``<root>/<name>/`` with ``manifest.json``, ArrayRecord shards per
+split and seeded evaluation priors (through the data pipeline's :class:`.writer.DatasetWriter`)
+and the cached map rasters per city and map variant (:mod:`.real_maps`). Resumable: a shard path
+that exists is complete (atomic rename) and is only checked, its frames' sensors are not read
+again; a config that differs from the manifest's is refused, naming the keys.
+
+Splits map output names to the reader's: nuScenes ``{"train": "train", "val": "val"}`` (scene
+lists), AV2 ``{"train": "train", "val": "val"}`` (split directories, filtered by city).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from collections.abc import Mapping
+
+import numpy as np
+
+from seglocnet_jax.data import manifest as mf
+from seglocnet_jax.data.real_align import AlignConfig
+from seglocnet_jax.data.real_common import Frame, RealDataError, RealReader
+from seglocnet_jax.data.schema import SAMPLE_KEYS
+from seglocnet_jax.data.variants import VariantConfig
+from seglocnet_jax.data.writer import DatasetWriter
+
+
+@dataclasses.dataclass(frozen=True)
+class ConvertConfig:
+    """The ``dataset`` conversion options (reader options live in the reader's config).
+
+    Attributes:
+      name: dataset directory name under ``root``.
+      root: output root (not part of the dataset identity).
+      seed: seed of the stored evaluation priors.
+      splits: output split name -> reader split name.
+      shard_size: records per shard (the writer holds a shard's decoded samples in memory:
+        ~5 MB each at 6 x 320 x 800, so 64 is ~300 MB).
+      png_level: PNG compression level of the stored images (lossless at any level).
+      osm: city -> user OSM extract (``.osm.pbf`` / ``.osm``): buildings and SD roads; a city
+        without one gets HD variants from the drivable area alone only if ``channels`` has no
+        building (else the error names ``dataset.convert.osm.<city>``).
+      map_variants: ``variants.VariantConfig`` dicts rasterized after the sensors.
+      align: the OSM -> dataset similarity correction fitted per city.
+    """
+
+    name: str = "nuscenes"
+    root: str = "data_cache"
+    seed: int = 0
+    splits: dict = dataclasses.field(default_factory=lambda: {"train": "train", "val": "val"})
+    shard_size: int = 64
+    png_level: int = 1
+    osm: dict = dataclasses.field(default_factory=dict)
+    map_variants: tuple[dict, ...] = ({"kind": "hd"}, {"kind": "sd", "road_width": 10.0})
+    align: AlignConfig = AlignConfig()
+
+    def __post_init__(self):
+        if not self.splits:
+            raise ValueError("dataset.convert.splits must map at least one output split to a "
+                             "reader split")
+        if self.shard_size < 1:
+            raise ValueError(f"dataset.convert.shard_size must be >= 1, got {self.shard_size}")
+
+    def identity(self, reader: RealReader) -> dict:
+        """What defines the sensor shards: the reader's config and these keys."""
+        return json.loads(json.dumps({
+            "reader": reader.identity(), "seed": self.seed, "splits": dict(self.splits),
+            "shard_size": self.shard_size, "png_level": self.png_level,
+        }))
+
+
+class LazySample(Mapping):
+    """A frame's sample dict (``schema.SAMPLE_KEYS``) that reads its sensors on first access.
+
+    The dataset writer looks at ``sample_id``, ``city`` and ``pose`` of every sample but encodes
+    only those of shards it has not written yet, so a resumed conversion skips the sensor I/O of
+    finished shards.
+    """
+
+    def __init__(self, reader: RealReader, frame: Frame):
+        self._reader, self._frame, self._data = reader, frame, None
+
+    def __getitem__(self, key):
+        f = self._frame
+        if key == "sample_id":
+            return f.sample_id
+        if key == "city":
+            return f.city
+        if key == "pose":
+            return np.asarray(f.pose, np.float64)
+        if key not in SAMPLE_KEYS:
+            raise KeyError(key)
+        if self._data is None:
+            data = self._reader.load(f)
+            if data["sample_id"] != f.sample_id or data["city"] != f.city:
+                raise RealDataError(f"{f.key}: loaded sample {data['sample_id']!r} in "
+                                    f"{data['city']!r}, listed as {f.sample_id!r} in {f.city!r}")
+            self._data = data
+        return self._data[key]
+
+    def __contains__(self, key) -> bool:
+        return key in SAMPLE_KEYS
+
+    def __iter__(self):
+        return iter(SAMPLE_KEYS)
+
+    def __len__(self) -> int:
+        return len(SAMPLE_KEYS)
+
+
+def convert(reader: RealReader, cfg: ConvertConfig, *, variants: bool = True) -> str:
+    """Converts (or resumes, or checks) ``<cfg.root>/<cfg.name>``; returns that directory.
+
+    Sensors go through :class:`data.writer.DatasetWriter` (the simulator pipeline's records,
+    shards, manifest and seeded priors); then the map variants (:mod:`.real_maps`).
+    """
+    dataset_dir = os.path.join(cfg.root, cfg.name)
+    frames = {out: reader.frames(src) for out, src in cfg.splits.items()}
+    for out, fr in frames.items():
+        if not fr:
+            raise RealDataError(f"dataset.convert.splits.{out}: reader split "
+                                f"{cfg.splits[out]!r} has no frames")
+    writer = DatasetWriter(dataset_dir, cfg.identity(reader), seed=cfg.seed,
+                           shard_size=cfg.shard_size, png_level=cfg.png_level)
+    for out, fr in frames.items():
+        writer.write_split(out, (LazySample(reader, f) for f in fr), len(fr))
+    writer.close()
+    if variants:
+        from seglocnet_jax.data.real_maps import ensure_real_variants
+
+        poses = {}
+        for f in (f for fr in frames.values() for f in fr):
+            poses.setdefault(f.city, []).append(f.pose)
+        ensure_real_variants(dataset_dir, reader, cfg, poses)
+    return dataset_dir
+
+
+def convert_for_training(reader: RealReader, cfg: ConvertConfig, variant: VariantConfig):
+    """What a training app calls for a real dataset (twin of ``prepare.prepare_for_training``):
+    converts what is missing, adds ``variant`` to the map variants, and returns
+    ``(dataset_dir, variant name)`` for :func:`loader.make_loader`."""
+    specs = [dict(v) for v in cfg.map_variants]
+    if variant not in [VariantConfig(**v) for v in specs]:
+        specs.append(dict(dataclasses.asdict(variant), channels=list(variant.channels)))
+    return convert(reader, dataclasses.replace(cfg, map_variants=tuple(specs))), variant.name
+
+
+def from_tree(tree: dict, prefix: str = "dataset"):
+    """``(reader, ConvertConfig)`` from a plain ``dataset`` config tree (``conf/dataset/*.yaml``):
+    ``source`` (``nuscenes`` | ``av2``), ``reader`` and ``convert`` sections."""
+    from seglocnet_jax.config_util import ConfigError, from_dict
+    from seglocnet_jax.data import argoverse, nuscenes
+
+    readers = {"nuscenes": (nuscenes.NuScenesConfig, nuscenes.NuScenesReader),
+               "av2": (argoverse.ArgoverseConfig, argoverse.ArgoverseReader)}
+    unknown = sorted(set(tree) - {"source", "reader", "convert"})
+    if unknown:
+        raise ConfigError(f"unknown config key(s) {[f'{prefix}.{k}' for k in unknown]}; "
+                          f"{prefix} accepts source, reader, convert")
+    source = tree.get("source")
+    if source not in readers:
+        raise ConfigError(f"{prefix}.source must be one of {sorted(readers)}, got {source!r}")
+    cfg_cls, reader_cls = readers[source]
+    reader = reader_cls(from_dict(cfg_cls, tree.get("reader"), f"{prefix}.reader"))
+    return reader, from_dict(ConvertConfig, tree.get("convert"), f"{prefix}.convert")
+
+
+def summary(dataset_dir: str) -> str:
+    """A short report of a converted dataset: frames per split and city, map variants, and each
+    city's OSM correction (shift m, rotation deg, scale, normalized score)."""
+    man = mf.read_manifest(dataset_dir)
+    lines = [f"dataset {dataset_dir}"]
+    for name, split in man["splits"].items():
+        lines.append(f"  split {name}: {split['count']} frames {split['cities']}")
+    lines.append(f"  map variants: {sorted(man['map_variants'])}")
+    for city, a in sorted(man.get("alignment", {}).get("cities", {}).items()):
+        lines.append(f"  OSM correction {city}: shift ({a['shift_m'][0]:+.2f}, "
+                     f"{a['shift_m'][1]:+.2f}) m, rotation {a['rotation_deg']:+.3f} deg, "
+                     f"scale {a['scale']:.4f}, score {a['score']:.3f}")
+        for variant, frac in sorted(a.get("poses_on_road", {}).items()):
+            lines.append(f"    poses on the road of {variant}: {100 * frac:.1f}%")
+    return "\n".join(lines)
