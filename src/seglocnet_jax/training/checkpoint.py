@@ -68,8 +68,10 @@ class Checkpointer:
 
     def save(self, step: int, state, data_state: dict, metrics: dict | None = None):
         """Saves to ``last``; with validation ``metrics`` also offers it to ``best``."""
-        self.last.save(step, args=_args(state, data_state), force=True)
-        if metrics is not None and self.cfg.best_metric in metrics:
+        if step not in self.last.all_steps():
+            self.last.save(step, args=_args(state, data_state), force=True)
+        if (metrics is not None and self.cfg.best_metric in metrics
+                and step not in self.best.all_steps()):
             self.best.save(step, args=_args(state, data_state), metrics=metrics, force=True)
         self.last.wait_until_finished()
         self.best.wait_until_finished()

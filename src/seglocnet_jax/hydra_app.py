@@ -1,0 +1,45 @@
+"""The one seam to Hydra: config location, resolvers, DictConfig -> plain dict, distributed init.
+
+Library modules never import this; only the ``__main__`` entry points do.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+
+from omegaconf import DictConfig, OmegaConf
+
+
+def conf_dir() -> str:
+    """The repository's ``conf/`` (override with ``SEGLOCNET_CONF``)."""
+    env = os.environ.get("SEGLOCNET_CONF")
+    if env:
+        return os.path.abspath(env)
+    for parent in pathlib.Path(__file__).resolve().parents:
+        if (parent / "conf" / "config.yaml").exists():
+            return str(parent / "conf")
+    raise FileNotFoundError(
+        "cannot find conf/config.yaml above the package; set SEGLOCNET_CONF to the conf directory"
+    )
+
+
+def register_resolvers() -> None:
+    if not OmegaConf.has_resolver("join"):
+        OmegaConf.register_new_resolver("join", lambda xs: "-".join(str(x) for x in xs))
+
+
+def to_tree(cfg: DictConfig) -> dict:
+    """The resolved config without Hydra's own node."""
+    tree = OmegaConf.to_container(cfg, resolve=True)
+    tree.pop("hydra", None)
+    return tree
+
+
+def maybe_initialize_distributed() -> None:
+    """Multi-host: ``jax.distributed.initialize()`` when the environment asks for it (a
+    coordinator address, or a cluster JAX auto-detects such as SLURM / TPU pods)."""
+    import jax
+
+    if os.environ.get("JAX_COORDINATOR_ADDRESS") or os.environ.get("SEGLOCNET_DISTRIBUTED"):
+        jax.distributed.initialize()

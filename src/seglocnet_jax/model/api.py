@@ -1,0 +1,122 @@
+"""The model's functional API: ``init``, ``forward``, ``loss_fn`` and ``localize``.
+
+Pure functions of ``params`` (flax.linen, parameters only: GroupNorm, no batch statistics), to
+be jitted once and sharded by the caller. ``cfg`` (a frozen, hashable :class:`ModelConfig`) is
+closed over or passed as a static argument. Initialization is from scratch.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from seglocnet_jax import geometry, losses, solver
+from seglocnet_jax.model.config import ModelConfig
+from seglocnet_jax.model.seglocnet import SegLocNet, check_batch, required_keys
+
+
+@functools.lru_cache(maxsize=32)
+def build(cfg: ModelConfig) -> SegLocNet:
+    """The flax module for ``cfg`` (cached: one module object per config)."""
+    return SegLocNet(cfg)
+
+
+def _model_inputs(batch: dict, cfg: ModelConfig) -> dict:
+    check_batch(batch, cfg)
+    return {k: batch[k] for k in required_keys(cfg)}
+
+
+def init(key: jax.Array, batch: dict, cfg: ModelConfig) -> dict:
+    """Fresh parameters from ``key``, shaped by one sample of ``batch`` (any batch size works
+    afterwards; H, W, N and P fix nothing in the parameters)."""
+    inputs = jax.tree.map(lambda x: x[:1], _model_inputs(batch, cfg))
+    variables = jax.jit(build(cfg).init)({"params": key}, inputs)
+    return variables["params"]
+
+
+def forward(params: dict, batch: dict, cfg: ModelConfig, *, train: bool = False,
+            rng: jax.Array | None = None) -> tuple[jax.Array, dict]:
+    """``(bev_logits (B, C, 128, 128), aux)``; see :class:`SegLocNet` for ``aux``.
+
+    ``train`` enables dropout (``rng`` required when ``cfg.dropout > 0``).
+    """
+    deterministic = not train or cfg.dropout == 0.0
+    if not deterministic and rng is None:
+        raise ValueError("forward(train=True) with model.dropout > 0 needs an rng key")
+    rngs = None if deterministic else {"dropout": rng}
+    return build(cfg).apply({"params": params}, _model_inputs(batch, cfg),
+                            deterministic=deterministic, rngs=rngs)
+
+
+def nm_log_likelihood(aux: dict, num_rotations: int) -> jax.Array:
+    """Log-probabilities ``(B, K, 129, 129)`` of the NM score volume of ``forward``'s aux."""
+    volume = solver.score_volume_batch(aux["bev_match"], aux["map_match"], num_rotations,
+                                       "fft", rotation_chunk=2, batch_chunk=1)
+    return solver.log_softmax_volume(volume * aux["match_scale"])
+
+
+def _check_labels(batch: dict, cfg: ModelConfig):
+    if "bev_gt" not in batch:
+        raise KeyError("batch lacks key 'bev_gt' needed by the focal loss")
+    shape = tuple(batch["bev_gt"].shape)
+    want = (cfg.num_classes, geometry.BEV_SIZE, geometry.BEV_SIZE)
+    if shape[1:] != want:
+        raise ValueError(f"batch['bev_gt'] has shape {shape}, expected (B, {want[0]}, {want[1]}, "
+                         f"{want[2]}) for model.num_classes={cfg.num_classes}")
+    if cfg.variant == "nm" and "pose_tile" not in batch:
+        raise KeyError("batch lacks key 'pose_tile' needed by the NM pose loss")
+
+
+def loss_fn(params: dict, batch: dict, cfg: ModelConfig, rng: jax.Array | None = None):
+    """Scalar training loss and metrics.
+
+    ``seg``: mean over classes of the per-class focal loss. ``nm``: ``seg_weight * focal +
+    nm_weight * NLL`` of the GT pose cell over all ``nm_num_rotations x 129 x 129`` cells.
+    Metrics: ``focal``, ``focal_c{i}``, ``iou_c{i}`` (threshold 0.5, pooled over the batch),
+    and for NM ``pose_nll`` and ``match_scale``.
+    """
+    _check_labels(batch, cfg)
+    logits, aux = forward(params, batch, cfg, train=True, rng=rng)
+    labels = batch["bev_gt"].astype(jnp.float32)
+    per_class = losses.sigmoid_focal_loss(logits, labels, cfg.focal_alpha, cfg.focal_gamma)
+    focal = per_class.mean()
+    pred = (logits > 0).astype(jnp.float32)
+    inter = jnp.sum(pred * labels, axis=(0, 2, 3))
+    union = jnp.sum(jnp.maximum(pred, labels), axis=(0, 2, 3))
+    iou = inter / jnp.maximum(union, 1.0)
+    metrics = {"focal": focal}
+    for i in range(cfg.num_classes):
+        metrics[f"focal_c{i}"] = per_class[i]
+        metrics[f"iou_c{i}"] = iou[i]
+    if cfg.variant != "nm":
+        return focal, metrics
+    log_probs = nm_log_likelihood(aux, cfg.nm_num_rotations)  # (B, K, 129, 129)
+    cells = losses.gt_cells(batch["pose_tile"], cfg.nm_num_rotations, log_probs.shape[-1])
+    nll = losses.pose_nll(log_probs, cells).mean()
+    metrics.update(pose_nll=nll, match_scale=aux["match_scale"])
+    return cfg.seg_weight * focal + cfg.nm_weight * nll, metrics
+
+
+def make_loss_fn(cfg: ModelConfig):
+    """``(params, batch, rng) -> (loss, metrics)`` for the training step."""
+    return functools.partial(_bound_loss, cfg=cfg)
+
+
+def _bound_loss(params, batch, rng, *, cfg):
+    return loss_fn(params, batch, cfg, rng)
+
+
+def localize(params: dict, batch: dict, cfg: ModelConfig, solver_cfg: solver.SolverConfig):
+    """Network + solver: ``solver.localize`` output dict plus ``bev_logits``.
+
+    ``seg`` matches the BEV logits against the {0, 1} tile; ``nm`` matches the BEV matching
+    features against the neural map of the tile.
+    """
+    logits, aux = forward(params, batch, cfg)
+    if cfg.variant == "nm":
+        out = solver.localize(aux["bev_match"], aux["map_match"], solver_cfg)
+    else:
+        out = solver.localize(logits, batch["tile"].astype(jnp.float32), solver_cfg)
+    return dict(out, bev_logits=logits)

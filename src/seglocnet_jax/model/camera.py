@@ -1,0 +1,118 @@
+"""Camera encoder: per-view stride-16 features + PETR-style 3D position embedding, read by BEV
+queries through a DETR-style transformer decoder into a 16x16xD latent BEV map.
+
+The position embedding lifts every feature pixel to ``depth_bins`` points along its camera ray
+(:func:`frustum_points_ego`, a pure function tested against a NumPy projection), expresses them
+in the ego frame (x forward, y left, z up, metres), normalizes them to the perception range and
+maps them through an MLP. BEV queries come from the ego-frame centres of the 16x16 latent cells
+(``geometry.bev_cell_centers_ego``: row 0 is the far front, columns run to the vehicle's right).
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from seglocnet_jax import geometry
+from seglocnet_jax.model.backbone import STRIDE, check_image_size, make_backbone, normalize_images
+from seglocnet_jax.model.config import LATENT_SIZE, PERCEPTION_RANGE, ModelConfig
+from seglocnet_jax.model.layers import MLP
+from seglocnet_jax.model.transformer import TransformerDecoder
+
+
+def depth_bins(num: int, depth_min: float, depth_max: float) -> np.ndarray:
+    """Linear-increasing depths (PETR's LID): ``(num,)`` metres from near ``depth_min`` to
+    exactly ``depth_max``, spacing growing linearly with the index."""
+    i = np.arange(1, num + 1, dtype=np.float64)
+    return (depth_min + (depth_max - depth_min) * i * (i + 1) / (num * (num + 1))).astype(
+        np.float32)
+
+
+def feature_pixel_centers(feat_h: int, feat_w: int, stride: int) -> np.ndarray:
+    """Image ``(u, v)`` of each stride-``stride`` feature pixel's centre, ``(h, w, 2)``.
+
+    OpenCV pixel convention (integer coordinates are pixel centres): feature pixel ``(i, j)``
+    covers image pixels ``[s*j, s*j + s)``, so its centre is ``u = s*j + (s - 1) / 2``.
+    """
+    u = np.arange(feat_w, dtype=np.float32) * stride + (stride - 1) / 2
+    v = np.arange(feat_h, dtype=np.float32) * stride + (stride - 1) / 2
+    uu, vv = np.meshgrid(u, v, indexing="xy")
+    return np.stack([uu, vv], axis=-1)
+
+
+def frustum_points_ego(intrinsics: jax.Array, cam_to_ego: jax.Array, feat_hw: tuple[int, int],
+                       stride: int, depths) -> jax.Array:
+    """Ego-frame points of every feature pixel at every depth.
+
+    Args:
+      intrinsics: ``(..., 3, 3)`` pinhole matrices in pixels of the input image.
+      cam_to_ego: ``(..., 4, 4)`` camera (OpenCV: x right, y down, z forward) to ego (x forward,
+        y left, z up) transforms, metres.
+      feat_hw: feature map ``(h, w)``; stride: image pixels per feature pixel.
+      depths: ``(D,)`` metres along the camera z axis.
+
+    Returns:
+      ``(..., h, w, D, 3)`` ego ``(x, y, z)`` metres of ``z_cam * K^-1 [u, v, 1]``.
+    """
+    uv = jnp.asarray(feature_pixel_centers(*feat_hw, stride))  # (h, w, 2)
+    pix = jnp.concatenate([uv, jnp.ones(uv.shape[:-1] + (1,), uv.dtype)], axis=-1)  # (h, w, 3)
+    k_inv = jnp.linalg.inv(intrinsics)  # (..., 3, 3)
+    rays = jnp.einsum("...ij,hwj->...hwi", k_inv, pix)  # (..., h, w, 3), z = 1 for pinhole K
+    depths = jnp.asarray(depths, jnp.float32)
+    pts_cam = rays[..., None, :] * depths[:, None]  # (..., h, w, D, 3)
+    rot, trans = cam_to_ego[..., :3, :3], cam_to_ego[..., :3, 3]
+    pts = jnp.einsum("...ij,...hwdj->...hwdi", rot, pts_cam)
+    return pts + trans[..., None, None, None, :]
+
+
+def normalize_ego_points(points: jax.Array, z_range: tuple[float, float]) -> jax.Array:
+    """Ego ``(..., 3)`` metres to about [-1, 1]: x, y over +-``PERCEPTION_RANGE``, z over
+    ``z_range``. Points outside the range keep growing linearly (no clipping)."""
+    lo, hi = z_range
+    scale = jnp.asarray([1 / PERCEPTION_RANGE, 1 / PERCEPTION_RANGE, 2 / (hi - lo)])
+    shift = jnp.asarray([0.0, 0.0, -(hi + lo) / (hi - lo)])
+    return points * scale + shift
+
+
+def bev_reference_points() -> np.ndarray:
+    """Ego ``(forward, left)`` of the 16x16 latent cell centres over +-32 m, normalized to
+    [-1, 1]: ``(16, 16, 2)``; row 0 is the far front, columns run to the right."""
+    cell = 2 * PERCEPTION_RANGE / LATENT_SIZE
+    return (geometry.bev_cell_centers_ego(LATENT_SIZE, cell) / PERCEPTION_RANGE).astype(
+        np.float32)
+
+
+class CameraEncoder(nn.Module):
+    """Surround images -> latent BEV ``(B, 16, 16, D)`` plus intermediates."""
+
+    cfg: ModelConfig
+
+    @nn.compact
+    def __call__(self, images, intrinsics, cam_to_ego, deterministic: bool = True):
+        # images: (B, N, H, W, 3) uint8; intrinsics (B, N, 3, 3); cam_to_ego (B, N, 4, 4)
+        cfg = self.cfg
+        b, n, h, w, _ = images.shape
+        check_image_size(h, w)
+        fh, fw, d = h // STRIDE, w // STRIDE, cfg.embed_dim
+        x = normalize_images(images).reshape(b * n, h, w, 3)
+        x = make_backbone(cfg.backbone, cfg.backbone_widths, cfg.backbone_blocks,
+                          cfg.vovnet_layers)(x)  # (B*N, h/16, w/16, Cb)
+        feats = nn.Dense(d, name="token_proj")(x).reshape(b, n * fh * fw, d)
+
+        bins = depth_bins(cfg.depth_bins, cfg.depth_min, cfg.depth_max)
+        pts = frustum_points_ego(intrinsics.astype(jnp.float32), cam_to_ego.astype(jnp.float32),
+                                 (fh, fw), STRIDE, bins)  # (B, N, fh, fw, Db, 3)
+        pts = normalize_ego_points(pts, cfg.pos_z_range).reshape(b, n * fh * fw, -1)
+        t_pos = MLP((4 * d, d), name="position_embedding")(pts)  # (B, T, D)
+
+        ref = jnp.asarray(bev_reference_points()).reshape(-1, 2)  # (256, 2)
+        q_pos = MLP((d, d), name="query_embedding")(ref)[None]  # (1, Q, D)
+        content = self.param("query_content", nn.initializers.normal(0.02), (ref.shape[0], d))
+        q = jnp.broadcast_to(content[None], (b,) + content.shape)
+        q_pos = jnp.broadcast_to(q_pos, q.shape)
+        q = TransformerDecoder(cfg.transformer_layers, cfg.num_heads, cfg.ffn_dim, cfg.dropout,
+                               name="decoder")(q, q_pos, feats, t_pos, deterministic)
+        latent = q.reshape(b, LATENT_SIZE, LATENT_SIZE, d)  # (B, 16, 16, D)
+        return latent, {"camera_features": x.reshape(b, n, fh, fw, -1)}

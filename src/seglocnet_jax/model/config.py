@@ -1,0 +1,197 @@
+"""The network's configuration: one frozen dataclass, presets ``tiny`` and ``paper``.
+
+Spatial constants are not configurable: the BEV (128x128 at 0.5 m/px, +-32 m) and the latent
+grid (16x16, 4 m cells) come from :mod:`seglocnet_jax.geometry` and the three x2 decoder
+upsamplings. All networks are initialized from scratch (no pretrained weights are downloaded).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from seglocnet_jax import geometry
+
+MODALITIES = ("fused", "camera", "lidar")
+VARIANTS = ("seg", "nm")
+BACKBONES = ("resnet", "vovnet")
+
+LATENT_SIZE = geometry.BEV_SIZE // 8  # 16: three x2 upsamplings up to the BEV
+PERCEPTION_RANGE = geometry.BEV_SIZE * geometry.RESOLUTION / 2  # 32 m each side of the ego
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """SegLocNet network + loss configuration (defaults are the ``tiny`` preset).
+
+    Attributes:
+      name: preset name (reporting only).
+      modality: "fused" (camera + LiDAR), "camera" or "lidar"; the other branch is not built.
+      variant: "seg" (segmentation, focal loss) or "nm" (SegLocNet-NM: neural-map matching
+        features trained through the solver's score volume, plus the focal loss).
+      num_classes: BEV channels C (order as the map variant's channels: road, building).
+      embed_dim: latent width D of the 16x16 BEV map, the camera tokens and the queries.
+      backbone: "resnet" (basic residual blocks) or "vovnet" (one-shot aggregation modules).
+      backbone_widths: channels of the stride-2 stem and of the stride-4, -8, -16 stages.
+      backbone_blocks: blocks per stage (3 entries; VoVNet: OSA modules per stage).
+      vovnet_layers: 3x3 convs aggregated per OSA module.
+      depth_bins: frustum depths per feature pixel for the 3D position embedding.
+      depth_min, depth_max: metres along the camera z axis, linear-increasing bins (PETR's LID).
+      pos_z_range: ego z (m) mapped to [-1, 1] for the position embedding (x, y use +-32 m).
+      transformer_layers: DETR-style decoder layers (self-attn, cross-attn, FFN).
+      num_heads: attention heads; ffn_dim: FFN hidden width; dropout: in attention and FFN.
+      z_min, z_max: LiDAR voxel z range (m, ego frame); voxel_size: metres (x, y, z).
+      lidar_widths: channels of the stride-2 LiDAR stages from the voxel grid to 16x16.
+      lidar_3d_stages: how many of those stages are 3D convs (the rest run over z-folded
+        channels in 2D).
+      decoder_widths: channels at 32x32, 64x64 and 128x128.
+      lidar_skips: also feed the LiDAR stage features at 32x32 and 64x64 to the decoder
+        (concatenated, like U-Net skips; LiDAR modalities only).
+      focal_alpha, focal_gamma: sigmoid focal loss (alpha < 0 disables class weighting).
+      nm_dim: D' matching channels (NM); nm_widths: neural-map U-Net channels per level.
+      nm_num_rotations: K of the training score volume (NM; multiple of 4).
+      nm_init_scale: initial value of the learned factor on the cosine score volume.
+      nm_weight, seg_weight: NM loss = seg_weight * focal + nm_weight * pose NLL.
+    """
+
+    name: str = "tiny"
+    modality: str = "fused"
+    variant: str = "seg"
+    num_classes: int = 2
+    embed_dim: int = 64
+    # camera
+    backbone: str = "resnet"
+    backbone_widths: tuple[int, ...] = (16, 24, 48, 64)
+    backbone_blocks: tuple[int, ...] = (1, 1, 1)
+    vovnet_layers: int = 3
+    depth_bins: int = 16
+    depth_min: float = 1.0
+    depth_max: float = 45.0
+    pos_z_range: tuple[float, float] = (-3.0, 5.0)
+    transformer_layers: int = 2
+    num_heads: int = 4
+    ffn_dim: int = 128
+    dropout: float = 0.0
+    # lidar
+    z_min: float = -2.0
+    z_max: float = 4.0
+    voxel_size: float = geometry.RESOLUTION
+    lidar_widths: tuple[int, ...] = (16, 32, 64)
+    lidar_3d_stages: int = 2
+    # decoder
+    decoder_widths: tuple[int, ...] = (48, 32, 16)
+    lidar_skips: bool = True
+    # losses
+    focal_alpha: float = 0.25
+    focal_gamma: float = 2.0
+    # neural map (variant "nm")
+    nm_dim: int = 8
+    nm_widths: tuple[int, ...] = (16, 32, 64)
+    nm_num_rotations: int = 32
+    nm_init_scale: float = 0.05
+    nm_weight: float = 1.0
+    seg_weight: float = 1.0
+
+    def __post_init__(self):
+        def bad(key, want):
+            raise ValueError(f"model.{key} must be {want}, got {getattr(self, key)!r}")
+
+        if self.modality not in MODALITIES:
+            bad("modality", f"one of {MODALITIES}")
+        if self.variant not in VARIANTS:
+            bad("variant", f"one of {VARIANTS}")
+        if self.backbone not in BACKBONES:
+            bad("backbone", f"one of {BACKBONES}")
+        for key in ("num_classes", "embed_dim", "depth_bins", "transformer_layers", "num_heads",
+                    "ffn_dim", "nm_dim", "nm_num_rotations", "vovnet_layers"):
+            if getattr(self, key) < 1:
+                bad(key, ">= 1")
+        if self.embed_dim % self.num_heads:
+            bad("embed_dim", f"divisible by model.num_heads={self.num_heads}")
+        if len(self.backbone_widths) != 4:
+            bad("backbone_widths", "4 widths (stem, stride 4, 8, 16)")
+        if len(self.backbone_blocks) != 3 or min(self.backbone_blocks) < 1:
+            bad("backbone_blocks", "3 positive block counts (stride 4, 8, 16)")
+        if not 0 < self.depth_min < self.depth_max:
+            bad("depth_min", f"in (0, depth_max={self.depth_max})")
+        if len(self.pos_z_range) != 2 or not self.pos_z_range[0] < self.pos_z_range[1]:
+            bad("pos_z_range", "(low, high) with low < high")
+        if not 0.0 <= self.dropout < 1.0:
+            bad("dropout", "in [0, 1)")
+        if not self.z_min < self.z_max:
+            bad("z_min", f"< model.z_max={self.z_max}")
+        if len(self.lidar_widths) != self.num_lidar_stages:
+            bad("lidar_widths", f"{self.num_lidar_stages} widths: voxel grid "
+                f"{self.voxel_grid[0]} down to {LATENT_SIZE} in x2 steps")
+        if not 0 <= self.lidar_3d_stages <= len(self.lidar_widths):
+            bad("lidar_3d_stages", f"in [0, {len(self.lidar_widths)}]")
+        if len(self.decoder_widths) != 3:
+            bad("decoder_widths", "3 widths (32x32, 64x64, 128x128)")
+        if self.nm_num_rotations % 4:
+            bad("nm_num_rotations", "a multiple of 4")
+        if len(self.nm_widths) < 1:
+            bad("nm_widths", "at least one level")
+        if self.nm_init_scale <= 0:
+            bad("nm_init_scale", "> 0")
+
+    @property
+    def use_camera(self) -> bool:
+        return self.modality in ("fused", "camera")
+
+    @property
+    def use_lidar(self) -> bool:
+        return self.modality in ("fused", "lidar")
+
+    @property
+    def voxel_grid(self) -> tuple[int, int, int]:
+        """``(rows, cols, z)`` voxels: rows = -forward, cols = -left (the BEV's orientation)."""
+        n = 2 * PERCEPTION_RANGE / self.voxel_size
+        nz = (self.z_max - self.z_min) / self.voxel_size
+        if abs(n - round(n)) > 1e-6 or abs(nz - round(nz)) > 1e-6:
+            raise ValueError(f"model.voxel_size={self.voxel_size} must divide the "
+                             f"{2 * PERCEPTION_RANGE} m range and model.z_max - model.z_min")
+        return int(round(n)), int(round(n)), int(round(nz))
+
+    @property
+    def num_lidar_stages(self) -> int:
+        n = self.voxel_grid[0]
+        steps = math.log2(n / LATENT_SIZE) if n >= LATENT_SIZE else -1
+        if steps < 0 or steps != int(steps):
+            raise ValueError(f"model.voxel_size={self.voxel_size}: a {n}-voxel grid does not "
+                             f"reach the {LATENT_SIZE}x{LATENT_SIZE} latent by x2 steps")
+        return int(steps)
+
+
+TINY = ModelConfig()
+
+PAPER = ModelConfig(
+    name="paper",
+    embed_dim=256,
+    backbone="vovnet",
+    backbone_widths=(64, 256, 512, 768),
+    backbone_blocks=(1, 2, 2),
+    vovnet_layers=5,
+    depth_bins=64,
+    depth_min=1.0,
+    depth_max=61.2,
+    transformer_layers=6,
+    num_heads=8,
+    ffn_dim=1024,
+    dropout=0.1,
+    lidar_widths=(32, 64, 128),
+    lidar_3d_stages=2,
+    decoder_widths=(128, 64, 32),
+    lidar_skips=False,
+    nm_dim=16,
+    nm_widths=(32, 64, 128),
+    nm_num_rotations=64,
+)
+
+PRESETS = {"tiny": TINY, "paper": PAPER}
+
+
+def preset(name: str, **overrides) -> ModelConfig:
+    """A preset (``"tiny"`` or ``"paper"``) with some fields replaced."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown model preset {name!r}; expected one of {sorted(PRESETS)}")
+    return dataclasses.replace(PRESETS[name], **overrides)

@@ -1,0 +1,49 @@
+"""Fusion (concatenation + 1x1 conv) and the fully convolutional semantic decoder.
+
+16x16 latent -> three x2 upsamplings (32, 64, 128) -> ``(B, 128, 128, C)`` logits in the BEV's
+orientation (row 0 the far front, columns to the vehicle's right). Optional U-Net-style skips
+take the LiDAR encoder's 32x32 and 64x64 stage features, which keep geometry (kerbs, walls) that
+the 4 m latent cells blur.
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from seglocnet_jax.model.config import ModelConfig
+from seglocnet_jax.model.layers import ConvNormAct, ResBlock, upsample2x
+from seglocnet_jax.model.lidar import skip_key
+
+
+class Fusion(nn.Module):
+    """Concatenates the available latents ``(B, 16, 16, D_i)`` and mixes them with a 1x1 conv."""
+
+    features: int
+
+    @nn.compact
+    def __call__(self, latents: list[jax.Array]) -> jax.Array:
+        if not latents:
+            raise ValueError("fusion needs at least one modality latent")
+        x = jnp.concatenate(latents, axis=-1)
+        return ConvNormAct(self.features, (1, 1))(x)  # (B, 16, 16, D)
+
+
+class SemanticDecoder(nn.Module):
+    """Latent ``(B, 16, 16, D)`` -> logits ``(B, 128, 128, C)`` and the last features."""
+
+    cfg: ModelConfig
+
+    @nn.compact
+    def __call__(self, x, skips: dict | None = None):
+        cfg = self.cfg
+        x = ResBlock(cfg.embed_dim)(x)
+        for width in cfg.decoder_widths:
+            x = upsample2x(x)
+            skip = (skips or {}).get(skip_key(x.shape[1])) if cfg.lidar_skips else None
+            if skip is not None:
+                x = jnp.concatenate([x, skip], axis=-1)
+            x = ResBlock(width)(x)
+        logits = nn.Conv(cfg.num_classes, (1, 1), name="classifier")(x)  # (B, 128, 128, C)
+        return logits, x

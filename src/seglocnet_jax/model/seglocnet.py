@@ -1,0 +1,88 @@
+"""The SegLocNet network (flax.linen): camera and/or LiDAR encoders, fusion, semantic decoder,
+and for the NM variant the neural-map encoder and matching heads.
+
+A missing modality is configuration (``ModelConfig.modality``): its branch is neither built nor
+read, so its batch keys may be absent. Outputs keep their intermediates (``aux``) so evaluation
+and figures never need to re-run parts of the model.
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from seglocnet_jax.model.camera import CameraEncoder
+from seglocnet_jax.model.config import ModelConfig
+from seglocnet_jax.model.decoder import Fusion, SemanticDecoder
+from seglocnet_jax.model.lidar import LidarEncoder
+from seglocnet_jax.model.neural_map import BevMatchingHead, MatchScale, NeuralMapEncoder
+
+CAMERA_KEYS = ("images", "intrinsics", "cam_to_ego")
+LIDAR_KEYS = ("points", "points_mask")
+
+
+def required_keys(cfg: ModelConfig) -> tuple[str, ...]:
+    """Batch keys the network reads for this configuration."""
+    keys = ()
+    if cfg.use_camera:
+        keys += CAMERA_KEYS
+    if cfg.use_lidar:
+        keys += LIDAR_KEYS
+    if cfg.variant == "nm":
+        keys += ("tile",)
+    return keys
+
+
+def check_batch(batch: dict, cfg: ModelConfig):
+    """Raises a ``KeyError`` naming the missing batch keys for ``model.modality`` / variant."""
+    missing = [k for k in required_keys(cfg) if k not in batch]
+    if missing:
+        raise KeyError(f"batch lacks key(s) {missing} needed by model.modality="
+                       f"{cfg.modality!r}, model.variant={cfg.variant!r}")
+
+
+class SegLocNet(nn.Module):
+    """``batch -> (bev_logits (B, C, 128, 128), aux)``.
+
+    ``aux`` holds: ``bev_latent`` (B, 16, 16, D) fused latent; ``camera_latent`` /
+    ``lidar_latent`` (B, 16, 16, D) for the built branches; ``bev_features`` (B, 128, 128, F)
+    the decoder's last features; for the NM variant ``bev_match`` (B, D', 128, 128),
+    ``map_match`` (B, D', 256, 256) (unit-norm per pixel, channels first like the solver's
+    inputs) and ``match_scale`` () the learned score factor.
+    """
+
+    cfg: ModelConfig
+
+    @nn.compact
+    def __call__(self, batch: dict, deterministic: bool = True):
+        cfg = self.cfg
+        check_batch(batch, cfg)
+        aux, latents, skips = {}, [], {}
+        if cfg.use_camera:
+            cam, cam_aux = CameraEncoder(cfg, name="camera")(
+                batch["images"], batch["intrinsics"], batch["cam_to_ego"], deterministic)
+            aux["camera_latent"] = cam
+            latents.append(cam)
+        if cfg.use_lidar:
+            lid, skips = LidarEncoder(cfg, name="lidar")(batch["points"], batch["points_mask"])
+            aux["lidar_latent"] = lid
+            latents.append(lid)
+        fused = Fusion(cfg.embed_dim, name="fusion")(latents)  # (B, 16, 16, D)
+        logits, feats = SemanticDecoder(cfg, name="decoder")(fused, skips)
+        aux["bev_latent"] = fused
+        aux["bev_features"] = feats
+        if cfg.variant == "nm":
+            bev_match = BevMatchingHead(cfg, name="bev_match")(feats)  # (B, 128, 128, D')
+            map_match = NeuralMapEncoder(cfg, name="neural_map")(batch["tile"])
+            aux["bev_match"] = jnp.moveaxis(bev_match, -1, 1)  # (B, D', 128, 128)
+            aux["map_match"] = jnp.moveaxis(map_match, -1, 1)  # (B, D', 256, 256)
+            aux["match_scale"] = MatchScale(cfg.nm_init_scale, name="match_scale")()
+        return jnp.moveaxis(logits, -1, 1), aux  # (B, C, 128, 128)
+
+
+def param_groups(params: dict) -> dict[str, jax.Array]:
+    """Top-level parameter groups (``camera``, ``lidar``, ``fusion``, ``decoder``, ...) with
+    the global L2 norm of each: handy for gradient checks and logging."""
+    return {name: jnp.sqrt(sum(jnp.sum(jnp.square(x)) for x in jax.tree.leaves(sub)))
+            for name, sub in params.items()}

@@ -1,0 +1,199 @@
+"""Model pure functions against NumPy references, stage shapes, configuration errors."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+
+import jax
+import numpy as np
+import pytest
+import yaml
+
+from seglocnet_jax import geometry
+from seglocnet_jax.config_util import ConfigError, from_dict
+from seglocnet_jax.model import api, camera, lidar, synthetic
+from seglocnet_jax.model.config import ModelConfig, preset
+
+CONF_DIR = os.path.join(os.path.dirname(__file__), "..", "conf", "model")
+
+
+def _random_rig(rng, n):
+    intr = np.zeros((n, 3, 3), np.float32)
+    intr[:, 0, 0] = rng.uniform(50, 120, n)
+    intr[:, 1, 1] = rng.uniform(50, 120, n)
+    intr[:, 0, 2] = rng.uniform(60, 100, n)
+    intr[:, 1, 2] = rng.uniform(20, 40, n)
+    intr[:, 0, 1] = rng.uniform(-1, 1, n)  # skew: the inverse must handle a full K
+    intr[:, 2, 2] = 1
+    mats = []
+    for _ in range(n):
+        q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        q *= np.sign(np.linalg.det(q))
+        m = np.eye(4)
+        m[:3, :3] = q
+        m[:3, 3] = rng.normal(size=3)
+        mats.append(m)
+    return intr, np.asarray(mats, np.float32)
+
+
+def test_frustum_points_reproject_to_their_pixels_and_depths():
+    rng = np.random.default_rng(0)
+    intr, cam = _random_rig(rng, 3)
+    depths = camera.depth_bins(5, 1.0, 40.0)
+    pts = np.asarray(camera.frustum_points_ego(intr, cam, (2, 4), 16, depths))  # (3,2,4,5,3)
+    assert pts.shape == (3, 2, 4, 5, 3)
+    for n in range(3):
+        # NumPy reference: ego -> camera with the inverse extrinsics, then pinhole projection.
+        ego_to_cam = np.linalg.inv(cam[n].astype(np.float64))
+        p = pts[n].reshape(-1, 3).astype(np.float64)
+        pc = p @ ego_to_cam[:3, :3].T + ego_to_cam[:3, 3]
+        uvw = pc @ intr[n].astype(np.float64).T
+        u, v = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
+        uu, vv = np.meshgrid(np.arange(4) * 16 + 7.5, np.arange(2) * 16 + 7.5, indexing="xy")
+        want_u = np.repeat(uu.reshape(-1), 5)
+        want_v = np.repeat(vv.reshape(-1), 5)
+        np.testing.assert_allclose(u, want_u, atol=2e-3)
+        np.testing.assert_allclose(v, want_v, atol=2e-3)
+        np.testing.assert_allclose(pc[:, 2], np.tile(depths, 8), rtol=1e-5)
+
+
+def test_frustum_of_forward_camera_points_forward_in_ego():
+    intr, cam = synthetic.camera_rig(1, 64, 160)
+    pts = np.asarray(camera.frustum_points_ego(intr, cam, (4, 10), 16, np.array([10.0])))
+    pts = pts[0, :, :, 0]  # (4, 10, 3): the only camera at the only depth
+    # Camera 0 looks along ego +x at 1.5 m: depth 10 m is 10 m forward, left half of the image
+    # is the vehicle's left (+y), the lower rows are below the camera.
+    np.testing.assert_allclose(pts[..., 0], 10.0, atol=1e-4)
+    assert np.all(pts[:, :5, 1] > 0) and np.all(pts[:, 5:, 1] < 0)
+    assert np.all(pts[2:, :, 2] < synthetic.CAMERA_HEIGHT)
+
+
+def test_depth_bins_increase_to_max_with_growing_spacing():
+    d = camera.depth_bins(16, 1.0, 45.0)
+    gaps = np.diff(d)
+    assert d[0] > 1.0 and math.isclose(float(d[-1]), 45.0, rel_tol=1e-6)
+    assert np.all(gaps > 0) and np.all(np.diff(gaps) > 0)
+
+
+def test_bev_reference_points_follow_the_bev_convention():
+    ref = camera.bev_reference_points()  # (16, 16, 2) normalized (forward, left)
+    assert ref.shape == (16, 16, 2)
+    assert ref[0, 8, 0] > 0.9 and ref[-1, 8, 0] < -0.9  # row 0 far front
+    assert ref[8, 0, 1] > 0.9 and ref[8, -1, 1] < -0.9  # column 0 far left
+    np.testing.assert_allclose(ref.mean(axis=(0, 1)), 0.0, atol=1e-6)
+
+
+def _numpy_voxelize(points, mask, grid, voxel_size, z_min):
+    rows, cols, nz = grid
+    count = np.zeros(grid)
+    inten = np.zeros(grid)
+    height = np.zeros(grid)
+    for p, m in zip(points.astype(np.float64), mask, strict=True):
+        row, col = geometry.ego_to_bev_pixel(p[:2], rows, voxel_size)
+        r, c = int(np.floor(row)), int(np.floor(col))
+        zf = (p[2] - z_min) / voxel_size
+        z = int(np.floor(zf))
+        if not m or not (0 <= r < rows and 0 <= c < cols and 0 <= z < nz):
+            continue
+        count[r, c, z] += 1
+        inten[r, c, z] += p[3]
+        height[r, c, z] += zf - z
+    safe = np.maximum(count, 1)
+    return np.stack([np.log1p(count), inten / safe, height / safe], axis=-1)
+
+
+def test_voxelize_matches_numpy_reference():
+    rng = np.random.default_rng(1)
+    n = 3000
+    pts = np.concatenate([rng.uniform(-40, 40, (n, 2)), rng.uniform(-3, 5, (n, 1)),
+                          rng.uniform(0, 1, (n, 1))], axis=1).astype(np.float32)
+    pts[:200] = pts[200:400]  # duplicates: several points per voxel
+    pts[400, :3] = (32.0, 32.0, 4.0)  # exactly on the far edges: outside
+    mask = rng.random(n) > 0.2
+    grid = (128, 128, 12)
+    got = np.asarray(jax.jit(lidar.voxelize, static_argnums=(2, 3, 4))(pts, mask, grid, 0.5,
+                                                                         -2.0))
+    want = _numpy_voxelize(pts, mask, grid, 0.5, -2.0)
+    assert got.shape == (128, 128, 12, 3)
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    assert got[..., 0].sum() > 0
+
+
+def test_voxel_grid_orientation_is_the_bevs():
+    pts = np.array([[10.0, 5.0, 0.2, 1.0], [-10.0, -5.0, 0.2, 1.0]], np.float32)
+    vox = np.asarray(lidar.voxelize(pts, np.ones(2, bool), (128, 128, 12), 0.5, -2.0))
+    occupied = np.argwhere(vox[..., 0] > 0)
+    # forward 10 m -> 20 rows above the ego corner; left 5 m -> 10 columns left of it
+    np.testing.assert_array_equal(sorted(map(tuple, occupied)), [(44, 54, 4), (84, 74, 4)])
+
+
+def _shapes(cfg, batch):
+    model = api.build(cfg)
+    inputs = {k: batch[k] for k in api.required_keys(cfg)}
+    return jax.eval_shape(lambda: model.init_with_output(jax.random.key(0), inputs))
+
+
+@pytest.mark.parametrize("modality", ["fused", "camera", "lidar"])
+def test_stage_output_shapes(modality):
+    batch = synthetic.make_batch(0, 2, num_cams=3, image_hw=(32, 96), num_points=256)
+    cfg = preset("tiny", modality=modality)
+    (logits, aux), variables = _shapes(cfg, batch)
+    d = cfg.embed_dim
+    assert logits.shape == (2, 2, 128, 128)
+    assert aux["bev_latent"].shape == (2, 16, 16, d)
+    assert ("camera_latent" in aux) == (modality != "lidar")
+    assert ("lidar_latent" in aux) == (modality != "camera")
+    for key in ("camera_latent", "lidar_latent"):
+        if key in aux:
+            assert aux[key].shape == (2, 16, 16, d)
+    assert aux["bev_features"].shape == (2, 128, 128, cfg.decoder_widths[-1])
+    groups = set(variables["params"])
+    assert ("camera" in groups) == (modality != "lidar")
+    assert ("lidar" in groups) == (modality != "camera")
+
+
+def test_nm_variant_shapes_and_channels_follow_config():
+    batch = synthetic.make_batch(0, 1, num_cams=2, image_hw=(32, 64), num_points=128)
+    batch["bev_gt"] = np.zeros((1, 3, 128, 128), np.float32)
+    cfg = preset("tiny", variant="nm", num_classes=3, nm_dim=4)
+    (logits, aux), _ = _shapes(cfg, batch)
+    assert logits.shape == (1, 3, 128, 128)
+    assert aux["bev_match"].shape == (1, 4, 128, 128)
+    assert aux["map_match"].shape == (1, 4, 256, 256)
+    assert aux["match_scale"].shape == ()
+
+
+def test_missing_modality_is_configuration_not_a_crash():
+    batch = synthetic.make_batch(0, 1, num_cams=2, image_hw=(32, 64), num_points=128)
+    lidar_only = {k: v for k, v in batch.items() if k not in ("images", "intrinsics")}
+    (logits, _), _ = _shapes(preset("tiny", modality="lidar"), lidar_only)
+    assert logits.shape == (1, 2, 128, 128)
+    with pytest.raises(KeyError, match="images"):
+        _shapes(preset("tiny", modality="fused"), lidar_only)
+
+
+def test_image_size_must_be_divisible_by_16():
+    batch = synthetic.make_batch(0, 1, num_cams=1, image_hw=(40, 64), num_points=16)
+    with pytest.raises(ValueError, match="divisible by 16"):
+        _shapes(preset("tiny", modality="camera"), batch)
+
+
+def test_bad_config_values_name_the_key():
+    with pytest.raises(ValueError, match="model.modality"):
+        ModelConfig(modality="radar")
+    with pytest.raises(ValueError, match="model.lidar_widths"):
+        ModelConfig(lidar_widths=(16, 32))
+    with pytest.raises(ConfigError, match="model.embed_dim"):
+        from_dict(ModelConfig, {"embed_dim": 30, "num_heads": 4}, "model")
+
+
+@pytest.mark.parametrize("name", ["tiny", "paper"])
+def test_hydra_presets_match_python_presets(name):
+    with open(os.path.join(CONF_DIR, f"{name}.yaml")) as f:
+        tree = yaml.safe_load(f)
+    tree.pop("defaults", None)
+    cfg = from_dict(ModelConfig, tree, "model")
+    assert cfg == preset(name)
+    assert dataclasses.replace(cfg, modality="camera").use_lidar is False
