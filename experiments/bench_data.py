@@ -34,8 +34,14 @@ class SynthSource:
         street = rng.integers(0, 13, n) * 100.0
         along = rng.uniform(0, 1200, n)
         east = rng.random(n) < 0.5
-        return np.stack([np.where(east, along, street), np.where(east, street, along),
-                         np.where(east, 0.0, np.pi / 2)], axis=1)
+        return np.stack(
+            [
+                np.where(east, along, street),
+                np.where(east, street, along),
+                np.where(east, 0.0, np.pi / 2),
+            ],
+            axis=1,
+        )
 
     def render(self, poses, seed):
         rng = np.random.default_rng(seed)
@@ -45,13 +51,17 @@ class SynthSource:
             base = rng.integers(0, 256, (self.cams, self.hw[0] // 8, self.hw[1] // 8, 3))
             images = np.repeat(np.repeat(base, 8, 1), 8, 2).astype(np.uint8)
             images += rng.integers(0, 8, images.shape, dtype=np.uint8)
-            out.append({
-                "sample_id": str(i), "city": self.city, "pose": np.asarray(pose, np.float64),
-                "images": images,
-                "intrinsics": np.tile(np.eye(3, dtype=np.float32), (self.cams, 1, 1)),
-                "cam_to_ego": np.tile(np.eye(4, dtype=np.float32), (self.cams, 1, 1)),
-                "lidar": rng.normal(size=(self.points, 4)).astype(np.float32),
-            })
+            out.append(
+                {
+                    "sample_id": str(i),
+                    "city": self.city,
+                    "pose": np.asarray(pose, np.float64),
+                    "images": images,
+                    "intrinsics": np.tile(np.eye(3, dtype=np.float32), (self.cams, 1, 1)),
+                    "cam_to_ego": np.tile(np.eye(4, dtype=np.float32), (self.cams, 1, 1)),
+                    "lidar": rng.normal(size=(self.points, 4)).astype(np.float32),
+                }
+            )
         return out
 
 
@@ -96,29 +106,42 @@ def main():
     args = ap.parse_args()
     root = args.root or tempfile.mkdtemp(prefix="bench_data_")
     n_eval = max(args.frames // 8, args.batch)
-    cfg = pp.PrepareConfig(name=f"bench_{args.source}", root=root, num_train=args.frames,
-                           num_val=n_eval, num_test=n_eval, num_test_city=n_eval,
-                           split=splits.SplitConfig(stripe_width=25.0))
+    cfg = pp.PrepareConfig(
+        name=f"bench_{args.source}",
+        root=root,
+        num_train=args.frames,
+        num_val=n_eval,
+        num_test=n_eval,
+        num_test_city=n_eval,
+        split=splits.SplitConfig(stripe_width=25.0),
+    )
     factory = None
     if args.source == "synth":
+
         def factory(city):
             return SynthSource(city, args.cams, (args.height, args.width), args.points)
+
     t0 = time.perf_counter()
     ddir = pp.prepare(cfg, factory, variants=() if args.source == "synth" else None)
     prep_s = time.perf_counter() - t0
     frames = args.frames + 3 * n_eval
-    size = sum(os.path.getsize(os.path.join(d, f))
-               for d, _, fs in os.walk(os.path.join(ddir, "sensors")) for f in fs)
+    size = sum(
+        os.path.getsize(os.path.join(d, f))
+        for d, _, fs in os.walk(os.path.join(ddir, "sensors"))
+        for f in fs
+    )
     if args.source == "synth":
         rasters = {"helsinki": SynthRaster(), "kouvola": SynthRaster()}
         variant = None
     else:
         rasters, variant = None, cfg.map_variants[0]
         from seglocnet_jax.data.variants import VariantConfig
+
         variant = VariantConfig(**variant).name
     lcfg = ld.LoaderConfig(num_threads=args.threads, prefetch=2 * max(args.threads, 1))
-    loader = ld.make_loader(ddir, "train", variant, args.batch, 0, True, config=lcfg,
-                            rasters=rasters)
+    loader = ld.make_loader(
+        ddir, "train", variant, args.batch, 0, True, config=lcfg, rasters=rasters
+    )
     it = iter(loader)
     next(it)  # warm-up
     t0 = time.perf_counter()
@@ -133,13 +156,21 @@ def main():
             raster.tile(100.0 + i, 200.0)
             raster.cut_bev(np.array([100.0 + i, 200.0, 0.3]))
         tile_ms = (time.perf_counter() - t0) / 200 * 1e3
-    print(json.dumps({
-        "source": args.source, "frames": frames, "prepare_frames_per_s": frames / prep_s,
-        "bytes_per_frame": size / frames,
-        "loader_records_per_s": args.batches * args.batch / load_s,
-        "threads": args.threads, "tile_plus_bev_ms": tile_ms,
-        "image": [args.cams, args.height, args.width], "points": args.points,
-    }))
+    print(
+        json.dumps(
+            {
+                "source": args.source,
+                "frames": frames,
+                "prepare_frames_per_s": frames / prep_s,
+                "bytes_per_frame": size / frames,
+                "loader_records_per_s": args.batches * args.batch / load_s,
+                "threads": args.threads,
+                "tile_plus_bev_ms": tile_ms,
+                "image": [args.cams, args.height, args.width],
+                "points": args.points,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -49,7 +49,9 @@ def main() -> None:
     _, t_bevs = timed(lambda: raster.cut_bevs(poses[:64]), args.repeats)
 
     result = {
-        "city": city.name, "roads": len(city.roads), "buildings": len(city.buildings),
+        "city": city.name,
+        "roads": len(city.roads),
+        "buildings": len(city.buildings),
         "raster_shape": list(raster.mask.shape),
         "read_project_s": round(t_read, 4),
         "rasterize_sd_s": round(t_raster, 4),
@@ -57,8 +59,10 @@ def main() -> None:
         "cut_bev_ms": round(t_bev * 1e3, 4),
         "cut_bevs_64_ms": round(t_bevs * 1e3, 3),
     }
-    print(f"read+project {t_read:.3f} s, rasterize SD {t_raster:.3f} s (target < 2 s), "
-          f"tile {t_tile * 1e3:.4f} ms (target < 1 ms), cut_bev {t_bev * 1e3:.3f} ms")
+    print(
+        f"read+project {t_read:.3f} s, rasterize SD {t_raster:.3f} s (target < 2 s), "
+        f"tile {t_tile * 1e3:.4f} ms (target < 1 ms), cut_bev {t_bev * 1e3:.3f} ms"
+    )
     print(json.dumps(result))
 
 

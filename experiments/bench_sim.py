@@ -36,8 +36,9 @@ def consistency(world, sim, poses) -> dict:
         sel = arrays["lidar_valid"][i] & (arrays["lidar_thing"][i] == Thing.BUILDING)
         pts = arrays["lidar"][i][sel]
         pts = pts[pts[:, 2] > 0.5]
-        dist.append(shapely.distance(walls, shapely.points(geometry.ego_to_world(pose,
-                                                                                 pts[:, :2]))))
+        dist.append(
+            shapely.distance(walls, shapely.points(geometry.ego_to_world(pose, pts[:, :2])))
+        )
     dist = np.concatenate(dist)
     hd = rasterize(city, MapConfig(kind="hd", channels=("road",)), drivable=world.drivable)
     sd = rasterize(city, MapConfig(kind="sd", channels=("road",)))
@@ -49,14 +50,14 @@ def consistency(world, sim, poses) -> dict:
     h, w = sd.mask.shape[1:]
     rr = slice(max(r0, 0), min(r0 + h, hd_mask.shape[0]))
     cc = slice(max(c0, 0), min(c0 + w, hd_mask.shape[1]))
-    sd_full[rr, cc] = sd.mask[0, rr.start - r0:rr.stop - r0, cc.start - c0:cc.stop - c0] > 0
-    offsets = np.concatenate([np.linalg.norm(r.centerline - r.osm_centerline, axis=1)
-                              for r in world.roads])
+    sd_full[rr, cc] = sd.mask[0, rr.start - r0 : rr.stop - r0, cc.start - c0 : cc.stop - c0] > 0
+    offsets = np.concatenate(
+        [np.linalg.norm(r.centerline - r.osm_centerline, axis=1) for r in world.roads]
+    )
     return {
         "lidar_building_returns": int(len(dist)),
         "lidar_within_0.5m_of_osm_walls": round(float(np.mean(dist < 0.5)), 4),
-        "hd_sd10_road_iou": round(float((hd_mask & sd_full).sum() / (hd_mask | sd_full).sum()),
-                                  4),
+        "hd_sd10_road_iou": round(float((hd_mask & sd_full).sum() / (hd_mask | sd_full).sum()), 4),
         "centre_offset_mean_m": round(float(offsets.mean()), 3),
     }
 
@@ -78,24 +79,30 @@ def main(argv=None) -> dict:
     sim = Simulator(world, cfg)
     poses = drive(world, np.random.default_rng(args.seed), args.frames + args.batch, 4.0)
     t0 = time.perf_counter()
-    sim.render(poses[:args.batch], seed=0)  # compile + first batch
+    sim.render(poses[: args.batch], seed=0)  # compile + first batch
     t_first = time.perf_counter() - t0
     points = []
     t0 = time.perf_counter()
     for start in range(args.batch, args.batch + args.frames, args.batch):
-        for s in sim.render(poses[start:start + args.batch], seed=start):
+        for s in sim.render(poses[start : start + args.batch], seed=start):
             points.append(len(s["lidar"]))
     seconds = time.perf_counter() - t0
     result = {
-        "bench": "sim", "city": args.city, "preset": args.preset, "frames": len(points),
-        "seconds": round(seconds, 3), "fps": round(len(points) / seconds, 2),
-        "first_batch_s": round(t_first, 2), "world_build_s": round(t_world, 2),
+        "bench": "sim",
+        "city": args.city,
+        "preset": args.preset,
+        "frames": len(points),
+        "seconds": round(seconds, 3),
+        "fps": round(len(points) / seconds, 2),
+        "first_batch_s": round(t_first, 2),
+        "world_build_s": round(t_world, 2),
         "images": [6, cfg.image_height, cfg.image_width],
-        "lidar_points_mean": int(np.mean(points)), "backend": jax.default_backend(),
+        "lidar_points_mean": int(np.mean(points)),
+        "backend": jax.default_backend(),
         "world_cells": int(world.surface.size),
     }
     if args.consistency:
-        result.update(consistency(world, sim, poses[args.batch:]))
+        result.update(consistency(world, sim, poses[args.batch :]))
     print(json.dumps(result))
     return result
 

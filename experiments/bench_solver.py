@@ -33,14 +33,15 @@ def _time(fn, repeats: int) -> tuple[float, jax.Array]:
 def bench(batch: int, repeats: int, conv_repeats: int, num_rotations: int, seed: int = 0) -> dict:
     rng = np.random.default_rng(seed)
     bevs = rng.normal(size=(batch, 2, geometry.BEV_SIZE, geometry.BEV_SIZE)).astype(np.float32)
-    tiles = (rng.random((batch, 2, geometry.TILE_SIZE, geometry.TILE_SIZE)) < 0.3)
+    tiles = rng.random((batch, 2, geometry.TILE_SIZE, geometry.TILE_SIZE)) < 0.3
     tiles = tiles.astype(np.float32)
     result = {"batch": batch, "num_rotations": num_rotations}
     volumes = {}
     for method, reps in (("fft", repeats), ("conv", conv_repeats)):
         print(f"batch {batch}: {method} x{reps} (+1 warm-up) ...", file=sys.stderr, flush=True)
         seconds, volumes[method] = _time(
-            lambda m=method: solver.score_volume_batch(bevs, tiles, num_rotations, m), reps)
+            lambda m=method: solver.score_volume_batch(bevs, tiles, num_rotations, m), reps
+        )
         result[f"{method}_ms_per_sample"] = round(1000 * seconds / batch, 2)
         print(f"  {result[f'{method}_ms_per_sample']} ms/sample", file=sys.stderr, flush=True)
     result["conv_over_fft"] = round(result["conv_ms_per_sample"] / result["fft_ms_per_sample"], 1)

@@ -10,9 +10,15 @@ from seglocnet_jax.data import prepare as pp
 from seglocnet_jax.data import splits
 
 
-def random_sample(rng: np.random.Generator, sample_id: str = "s0", city: str = "helsinki",
-                  num_cams: int = 2, hw=(8, 12), num_points: int | None = None,
-                  pose=None) -> dict:
+def random_sample(
+    rng: np.random.Generator,
+    sample_id: str = "s0",
+    city: str = "helsinki",
+    num_cams: int = 2,
+    hw=(8, 12),
+    num_points: int | None = None,
+    pose=None,
+) -> dict:
     """A valid ``SAMPLE_KEYS`` dict with random content (images, intrinsics, LiDAR)."""
     n_pts = int(rng.integers(20, 60)) if num_points is None else num_points
     intr = np.tile(np.array([[10, 0, 6], [0, 10, 4], [0, 0, 1]], np.float32), (num_cams, 1, 1))
@@ -96,8 +102,17 @@ def random_raster(seed: int = 0, size_m: float = 600.0) -> ArrayRaster:
 
 def small_config(root, **kw) -> pp.PrepareConfig:
     base = dict(
-        name="tiny", root=str(root), seed=5, num_train=24, num_val=8, num_test=8,
-        num_test_city=6, shard_size=10, render_batch=4, pool_factor=2.0, max_rounds=10,
+        name="tiny",
+        root=str(root),
+        seed=5,
+        num_train=24,
+        num_val=8,
+        num_test=8,
+        num_test_city=6,
+        shard_size=10,
+        render_batch=4,
+        pool_factor=2.0,
+        max_rounds=10,
         split=splits.SplitConfig(stripe_width=25.0),
     )
     return pp.PrepareConfig(**(base | kw))

@@ -23,13 +23,24 @@ ROAD_HALF_WIDTH = 4.0
 PLAZA = (150.0, 60.0, 250.0, 160.0)  # x0, y0, x1, y1
 HOLE = (180.0, 120.0, 220.0, 150.0)
 # Road centrelines (world metres): crossing, non-parallel, so an alignment is well determined.
-ROADS = [((0.0, ROAD_Y), (400.0, ROAD_Y)), ((100.0, -20.0), (100.0, 300.0)),
-         ((0.0, 260.0), (400.0, 190.0)), ((300.0, 0.0), (340.0, 300.0))]
+ROADS = [
+    ((0.0, ROAD_Y), (400.0, ROAD_Y)),
+    ((100.0, -20.0), (100.0, 300.0)),
+    ((0.0, 260.0), (400.0, 190.0)),
+    ((300.0, 0.0), (340.0, 300.0)),
+]
 BUILDINGS = [(40.0, 40.0, 60.0, 60.0), (200.0, 20.0, 230.0, 40.0), (360.0, 20.0, 390.0, 50.0)]
 IMAGE_HW = (24, 40)
 FX = 20.0
-CAM_COLOURS = [(250, 20, 20), (20, 250, 20), (20, 20, 250), (250, 250, 20), (20, 250, 250),
-               (250, 20, 250), (128, 128, 128)]
+CAM_COLOURS = [
+    (250, 20, 20),
+    (20, 250, 20),
+    (20, 20, 250),
+    (250, 250, 20),
+    (20, 250, 250),
+    (250, 20, 250),
+    (128, 128, 128),
+]
 # OpenCV camera (x right, y down, z forward) looking along ego +x: columns are the camera axes.
 CAM_FORWARD = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 LIDAR_YAW = math.pi / 2  # nuScenes LIDAR_TOP is mounted turned 90 degrees
@@ -51,8 +62,12 @@ def quat_wxyz(r: np.ndarray) -> list[float]:
             if j != i:
                 v[j] = (r[i, j] + r[j, i]) / (4 * v[i])
         return [0.0, *v.tolist()]
-    return [w, (r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w),
-            (r[1, 0] - r[0, 1]) / (4 * w)]
+    return [
+        w,
+        (r[2, 1] - r[1, 2]) / (4 * w),
+        (r[0, 2] - r[2, 0]) / (4 * w),
+        (r[1, 0] - r[0, 1]) / (4 * w),
+    ]
 
 
 def _write_jpg(path: str, colour) -> None:
@@ -124,10 +139,22 @@ def write_osm(path: str, to_lonlat, warp=None) -> None:
 
 # --------------------------------------------------------------------------- nuScenes
 
-NUS_CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT",
-               "CAM_FRONT_LEFT")
-NUS_CAM_YAW = {"CAM_FRONT": 0.0, "CAM_FRONT_RIGHT": -1.0, "CAM_BACK_RIGHT": -2.0,
-               "CAM_BACK": math.pi, "CAM_BACK_LEFT": 2.0, "CAM_FRONT_LEFT": 1.0}
+NUS_CAMERAS = (
+    "CAM_FRONT",
+    "CAM_FRONT_RIGHT",
+    "CAM_BACK_RIGHT",
+    "CAM_BACK",
+    "CAM_BACK_LEFT",
+    "CAM_FRONT_LEFT",
+)
+NUS_CAM_YAW = {
+    "CAM_FRONT": 0.0,
+    "CAM_FRONT_RIGHT": -1.0,
+    "CAM_BACK_RIGHT": -2.0,
+    "CAM_BACK": math.pi,
+    "CAM_BACK_LEFT": 2.0,
+    "CAM_FRONT_LEFT": 1.0,
+}
 NUS_SCENES = {"scene-0061": 20.0, "scene-0103": 330.0}  # mini_train / mini_val, start x
 NUS_SAMPLES_PER_SCENE = 3
 CAM_EGO_DX = 0.3  # the ego moved this far (m, forward) between LiDAR and camera timestamps
@@ -135,8 +162,18 @@ CAM_EGO_DX = 0.3  # the ego moved this far (m, forward) between LiDAR and camera
 
 def write_nuscenes(root: str, version: str = "v1.0-mini") -> dict:
     """Writes the fixture; returns facts for the tests (poses per sample token, ...)."""
-    tables = {n: [] for n in ("scene", "log", "sample", "sample_data", "calibrated_sensor",
-                              "sensor", "ego_pose")}
+    tables = {
+        n: []
+        for n in (
+            "scene",
+            "log",
+            "sample",
+            "sample_data",
+            "calibrated_sensor",
+            "sensor",
+            "ego_pose",
+        )
+    }
     facts = {"poses": {}, "lidar": {}, "scenes": {}}
     calib = {}
     for ch in ("LIDAR_TOP", *NUS_CAMERAS):
@@ -148,35 +185,65 @@ def write_nuscenes(root: str, version: str = "v1.0-mini") -> dict:
             rot, trans = rot_z(NUS_CAM_YAW[ch]) @ CAM_FORWARD, [1.5, 0.0, 1.6]
             intr = [[FX, 0.0, IMAGE_HW[1] / 2], [0.0, FX, IMAGE_HW[0] / 2], [0.0, 0.0, 1.0]]
         calib[ch] = f"calib-{ch}"
-        tables["calibrated_sensor"].append({
-            "token": calib[ch], "sensor_token": f"sensor-{ch}", "translation": trans,
-            "rotation": quat_wxyz(rot), "camera_intrinsic": intr})
-    tables["log"].append({"token": "log-0", "logfile": "n008-fixture", "vehicle": "n008",
-                          "date_captured": "2018-08-01", "location": "boston-seaport"})
+        tables["calibrated_sensor"].append(
+            {
+                "token": calib[ch],
+                "sensor_token": f"sensor-{ch}",
+                "translation": trans,
+                "rotation": quat_wxyz(rot),
+                "camera_intrinsic": intr,
+            }
+        )
+    tables["log"].append(
+        {
+            "token": "log-0",
+            "logfile": "n008-fixture",
+            "vehicle": "n008",
+            "date_captured": "2018-08-01",
+            "location": "boston-seaport",
+        }
+    )
     t = 1_533_000_000_000_000
     for s_idx, (scene, x_start) in enumerate(NUS_SCENES.items()):
         tokens = [f"sample-{s_idx}-{i}" for i in range(NUS_SAMPLES_PER_SCENE)]
         facts["scenes"][scene] = tokens
-        tables["scene"].append({
-            "token": f"scene-tok-{s_idx}", "name": scene, "log_token": "log-0",
-            "nbr_samples": len(tokens), "first_sample_token": tokens[0],
-            "last_sample_token": tokens[-1], "description": "fixture"})
+        tables["scene"].append(
+            {
+                "token": f"scene-tok-{s_idx}",
+                "name": scene,
+                "log_token": "log-0",
+                "nbr_samples": len(tokens),
+                "first_sample_token": tokens[0],
+                "last_sample_token": tokens[-1],
+                "description": "fixture",
+            }
+        )
         for i, tok in enumerate(tokens):
             t += 500_000
             x, yaw = x_start + 10.0 * i, 0.05 * (i - 1)
             pose = np.array([x, ROAD_Y + 0.5 * i - 0.5, yaw])
             facts["poses"][tok] = pose
-            tables["sample"].append({
-                "token": tok, "timestamp": t, "scene_token": f"scene-tok-{s_idx}",
-                "prev": tokens[i - 1] if i else "",
-                "next": tokens[i + 1] if i + 1 < len(tokens) else ""})
+            tables["sample"].append(
+                {
+                    "token": tok,
+                    "timestamp": t,
+                    "scene_token": f"scene-tok-{s_idx}",
+                    "prev": tokens[i - 1] if i else "",
+                    "next": tokens[i + 1] if i + 1 < len(tokens) else "",
+                }
+            )
             for ch in ("LIDAR_TOP", *NUS_CAMERAS):
                 sd_tok = f"sd-{tok}-{ch}"
                 dx = 0.0 if ch == "LIDAR_TOP" else CAM_EGO_DX
                 ex, ey = pose[0] + dx * math.cos(yaw), pose[1] + dx * math.sin(yaw)
-                tables["ego_pose"].append({
-                    "token": f"ego-{sd_tok}", "timestamp": t,
-                    "translation": [ex, ey, 0.0], "rotation": quat_wxyz(rot_z(yaw))})
+                tables["ego_pose"].append(
+                    {
+                        "token": f"ego-{sd_tok}",
+                        "timestamp": t,
+                        "translation": [ex, ey, 0.0],
+                        "rotation": quat_wxyz(rot_z(yaw)),
+                    }
+                )
                 if ch == "LIDAR_TOP":
                     fname = f"samples/LIDAR_TOP/{sd_tok}.pcd.bin"
                     pts = lidar_points(s_idx * 10 + i)
@@ -186,22 +253,40 @@ def write_nuscenes(root: str, version: str = "v1.0-mini") -> dict:
                     facts["lidar"][tok] = pts
                 else:
                     fname = f"samples/{ch}/{sd_tok}.jpg"
-                    _write_jpg(os.path.join(root, fname),
-                               CAM_COLOURS[NUS_CAMERAS.index(ch)])
-                tables["sample_data"].append({
-                    "token": sd_tok, "sample_token": tok, "ego_pose_token": f"ego-{sd_tok}",
-                    "calibrated_sensor_token": calib[ch], "timestamp": t,
-                    "fileformat": "pcd" if ch == "LIDAR_TOP" else "jpg", "is_key_frame": True,
-                    "height": 0 if ch == "LIDAR_TOP" else IMAGE_HW[0],
-                    "width": 0 if ch == "LIDAR_TOP" else IMAGE_HW[1],
-                    "filename": fname, "prev": "", "next": ""})
+                    _write_jpg(os.path.join(root, fname), CAM_COLOURS[NUS_CAMERAS.index(ch)])
+                tables["sample_data"].append(
+                    {
+                        "token": sd_tok,
+                        "sample_token": tok,
+                        "ego_pose_token": f"ego-{sd_tok}",
+                        "calibrated_sensor_token": calib[ch],
+                        "timestamp": t,
+                        "fileformat": "pcd" if ch == "LIDAR_TOP" else "jpg",
+                        "is_key_frame": True,
+                        "height": 0 if ch == "LIDAR_TOP" else IMAGE_HW[0],
+                        "width": 0 if ch == "LIDAR_TOP" else IMAGE_HW[1],
+                        "filename": fname,
+                        "prev": "",
+                        "next": "",
+                    }
+                )
             # A non-keyframe sweep that readers must ignore (its file does not even exist).
-            tables["sample_data"].append({
-                "token": f"sweep-{tok}", "sample_token": tok,
-                "ego_pose_token": f"ego-sd-{tok}-LIDAR_TOP", "calibrated_sensor_token":
-                calib["LIDAR_TOP"], "timestamp": t + 50_000, "fileformat": "pcd",
-                "is_key_frame": False, "height": 0, "width": 0,
-                "filename": f"sweeps/LIDAR_TOP/missing-{tok}.pcd.bin", "prev": "", "next": ""})
+            tables["sample_data"].append(
+                {
+                    "token": f"sweep-{tok}",
+                    "sample_token": tok,
+                    "ego_pose_token": f"ego-sd-{tok}-LIDAR_TOP",
+                    "calibrated_sensor_token": calib["LIDAR_TOP"],
+                    "timestamp": t + 50_000,
+                    "fileformat": "pcd",
+                    "is_key_frame": False,
+                    "height": 0,
+                    "width": 0,
+                    "filename": f"sweeps/LIDAR_TOP/missing-{tok}.pcd.bin",
+                    "prev": "",
+                    "next": "",
+                }
+            )
     os.makedirs(os.path.join(root, version), exist_ok=True)
     for name, rows in tables.items():
         with open(os.path.join(root, version, f"{name}.json"), "w") as f:
@@ -221,11 +306,21 @@ def _write_nus_map(path: str) -> None:
         return tokens
 
     for shell, holes in drivable_polygons():
-        polygons.append({"token": f"poly-{len(polygons)}", "exterior_node_tokens":
-                         add_ring(shell), "holes": [{"node_tokens": add_ring(h)} for h in holes]})
-    data = {"version": "1.3", "canvas_edge": [3000.0, 2000.0], "node": nodes, "line": [],
-            "polygon": polygons,
-            "drivable_area": [{"token": "da-0", "polygon_tokens": [p["token"] for p in polygons]}]}
+        polygons.append(
+            {
+                "token": f"poly-{len(polygons)}",
+                "exterior_node_tokens": add_ring(shell),
+                "holes": [{"node_tokens": add_ring(h)} for h in holes],
+            }
+        )
+    data = {
+        "version": "1.3",
+        "canvas_edge": [3000.0, 2000.0],
+        "node": nodes,
+        "line": [],
+        "polygon": polygons,
+        "drivable_area": [{"token": "da-0", "polygon_tokens": [p["token"] for p in polygons]}],
+    }
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as f:
         json.dump(data, f)
@@ -233,8 +328,15 @@ def _write_nus_map(path: str) -> None:
 
 # --------------------------------------------------------------------------- Argoverse 2
 
-AV2_CAMERAS = ("ring_front_center", "ring_front_right", "ring_side_right", "ring_rear_right",
-               "ring_rear_left", "ring_side_left", "ring_front_left")
+AV2_CAMERAS = (
+    "ring_front_center",
+    "ring_front_right",
+    "ring_side_right",
+    "ring_rear_right",
+    "ring_rear_left",
+    "ring_side_left",
+    "ring_front_left",
+)
 AV2_LOGS = {  # split -> [(log id, city, start x)]
     "train": [("log-mia-a", "MIA", 20.0), ("log-pit-a", "PIT", 40.0)],
     "val": [("log-mia-b", "MIA", 330.0)],
@@ -253,8 +355,7 @@ def write_argoverse(root: str) -> dict:
             t0 = 315_969_000_000_000_000
             sweeps = [t0 + k * 100_000_000 for k in range(AV2_SWEEPS)]
             times = sorted(sweeps + [t + AV2_CAM_DT for t in sweeps])
-            rows = {c: [] for c in ("timestamp_ns", "qw", "qx", "qy", "qz", "tx_m", "ty_m",
-                                    "tz_m")}
+            rows = {c: [] for c in ("timestamp_ns", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")}
             for t in times:
                 x = x_start + AV2_EGO_SPEED * (t - t0) / 1e9
                 q = quat_wxyz(rot_z(0.02))
@@ -263,38 +364,69 @@ def write_argoverse(root: str) -> dict:
                 if t in sweeps:
                     facts["poses"][f"{log_id}/{t}"] = np.array([x, ROAD_Y, 0.02])
             _feather(os.path.join(d, "city_SE3_egovehicle.feather"), rows)
-            ext = {c: [] for c in ("sensor_name", "qw", "qx", "qy", "qz", "tx_m", "ty_m",
-                                   "tz_m")}
-            intr = {c: [] for c in ("sensor_name", "fx_px", "fy_px", "cx_px", "cy_px", "k1",
-                                    "k2", "k3", "height_px", "width_px")}
+            ext = {c: [] for c in ("sensor_name", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")}
+            intr = {
+                c: []
+                for c in (
+                    "sensor_name",
+                    "fx_px",
+                    "fy_px",
+                    "cx_px",
+                    "cy_px",
+                    "k1",
+                    "k2",
+                    "k3",
+                    "height_px",
+                    "width_px",
+                )
+            }
             for i, (cam, yaw) in enumerate(zip(AV2_CAMERAS, camera_yaws(7), strict=True)):
                 q = quat_wxyz(rot_z(yaw) @ CAM_FORWARD)
                 for key, v in zip(ext, [cam, *q, 1.0, 0.0, 1.5], strict=True):
                     ext[key].append(v)
-                for key, v in zip(intr, [cam, FX, FX, IMAGE_HW[1] / 2, IMAGE_HW[0] / 2, 0.0,
-                                         0.0, 0.0, IMAGE_HW[0], IMAGE_HW[1]], strict=True):
+                for key, v in zip(
+                    intr,
+                    [
+                        cam,
+                        FX,
+                        FX,
+                        IMAGE_HW[1] / 2,
+                        IMAGE_HW[0] / 2,
+                        0.0,
+                        0.0,
+                        0.0,
+                        IMAGE_HW[0],
+                        IMAGE_HW[1],
+                    ],
+                    strict=True,
+                ):
                     intr[key].append(v)
                 for t in sweeps:
-                    _write_jpg(os.path.join(d, "sensors", "cameras", cam,
-                                            f"{t + AV2_CAM_DT}.jpg"), CAM_COLOURS[i])
+                    _write_jpg(
+                        os.path.join(d, "sensors", "cameras", cam, f"{t + AV2_CAM_DT}.jpg"),
+                        CAM_COLOURS[i],
+                    )
             _feather(os.path.join(d, "calibration", "egovehicle_SE3_sensor.feather"), ext)
             _feather(os.path.join(d, "calibration", "intrinsics.feather"), intr)
             for k, t in enumerate(sweeps):
                 pts = lidar_points(100 + k)
                 facts["lidar"][f"{log_id}/{t}"] = pts
-                table = pa.table({
-                    "x": pa.array(pts[:, 0].astype(np.float16)),
-                    "y": pa.array(pts[:, 1].astype(np.float16)),
-                    "z": pa.array(pts[:, 2].astype(np.float16)),
-                    "intensity": pa.array(pts[:, 3].astype(np.uint8)),
-                    "laser_number": pa.array(np.zeros(len(pts), np.uint8)),
-                    "offset_ns": pa.array(np.zeros(len(pts), np.uint32)),
-                })
+                table = pa.table(
+                    {
+                        "x": pa.array(pts[:, 0].astype(np.float16)),
+                        "y": pa.array(pts[:, 1].astype(np.float16)),
+                        "z": pa.array(pts[:, 2].astype(np.float16)),
+                        "intensity": pa.array(pts[:, 3].astype(np.uint8)),
+                        "laser_number": pa.array(np.zeros(len(pts), np.uint8)),
+                        "offset_ns": pa.array(np.zeros(len(pts), np.uint32)),
+                    }
+                )
                 path = os.path.join(d, "sensors", "lidar", f"{t}.feather")
                 os.makedirs(os.path.dirname(path), exist_ok=True)
                 feather.write_feather(table, path)
-            _write_av2_map(os.path.join(d, "map",
-                                        f"log_map_archive_{log_id}____{city}_city_00000.json"))
+            _write_av2_map(
+                os.path.join(d, "map", f"log_map_archive_{log_id}____{city}_city_00000.json")
+            )
     return facts
 
 
@@ -310,15 +442,18 @@ def _write_av2_map(path: str) -> None:
         if i == len(polys) - 1:  # the plaza as two areas around the hole's column
             x0, y0, x1, y1 = PLAZA
             hx0, _, hx1, _ = HOLE
-            parts = [[(x0, y0), (hx0, y0), (hx0, y1), (x0, y1)],
-                     [(hx1, y0), (x1, y0), (x1, y1), (hx1, y1)]]
+            parts = [
+                [(x0, y0), (hx0, y0), (hx0, y1), (x0, y1)],
+                [(hx1, y0), (x1, y0), (x1, y1), (hx1, y1)],
+            ]
         else:
             parts = [shell]
         for ring in parts:
             aid = len(areas) + 1
-            areas[str(aid)] = {"id": aid, "area_boundary": [{"x": x, "y": y, "z": 0.0}
-                                                           for x, y in ring]}
+            areas[str(aid)] = {
+                "id": aid,
+                "area_boundary": [{"x": x, "y": y, "z": 0.0} for x, y in ring],
+            }
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as f:
-        json.dump({"drivable_areas": areas, "lane_segments": {}, "pedestrian_crossings": {}},
-                  f)
+        json.dump({"drivable_areas": areas, "lane_segments": {}, "pedestrian_crossings": {}}, f)

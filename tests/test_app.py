@@ -25,16 +25,27 @@ def _tree(data_root, **train):
     return {
         "name": "app_test",
         "data": {
-            "name": "tiny", "root": data_root, "test_city": None, "num_train": 16,
-            "num_val": 8, "num_test": 8, "shard_size": 8, "render_batch": 8,
+            "name": "tiny",
+            "root": data_root,
+            "test_city": None,
+            "num_train": 16,
+            "num_val": 8,
+            "num_test": 8,
+            "shard_size": 8,
+            "render_batch": 8,
         },
         "map": {"kind": "hd"},
         "loader": {"max_points": 4096, "num_threads": 0},
         "model": {"modality": "lidar"},
         "solver": {"num_rotations": 64},
         "train": {
-            "batch_size": 2, "num_steps": 4, "num_devices": 1, "eval_every": 0, "val_batches": 1,
-            "log_every": 1, "optim": {"warmup_steps": 1, "learning_rate": 1e-3},
+            "batch_size": 2,
+            "num_steps": 4,
+            "num_devices": 1,
+            "eval_every": 0,
+            "val_batches": 1,
+            "log_every": 1,
+            "optim": {"warmup_steps": 1, "learning_rate": 1e-3},
             "checkpoint": {"every_steps": 2},
             **train,
         },
@@ -69,8 +80,17 @@ def test_train_evaluate_gt_and_figures(data_root, tmp_path, capsys):
     assert ev["test"]["APE"] == pytest.approx(results["test"]["APE"], abs=1e-6)
 
     # GT-segmentation upper bound: no checkpoint, same code path, near-perfect localization.
-    gt_cfg = build_experiment({**_tree(data_root), "eval": {
-        "bev_source": "gt", "splits": ["test", "val"], "num_figures": 1, "batch_size": 4}})
+    gt_cfg = build_experiment(
+        {
+            **_tree(data_root),
+            "eval": {
+                "bev_source": "gt",
+                "splits": ["test", "val"],
+                "num_figures": 1,
+                "batch_size": 4,
+            },
+        }
+    )
     gt = loop.run_evaluation(gt_cfg, None, str(tmp_path / "gt"))
     assert gt["test"]["count"] == 8 and gt["val"]["count"] == 8
     assert gt["test"]["R@5m"] >= 75.0 and gt["val"]["R@5m"] >= 75.0

@@ -17,10 +17,15 @@ from seglocnet_jax.data import nuscenes as nu
 from seglocnet_jax.data.real_common import RealDataError
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
-FAST = ["dataset.convert.align.resolution=1.0", "dataset.convert.align.max_shift=8.0",
-        "dataset.convert.align.max_rotation_deg=0.5",
-        "dataset.convert.align.rotation_step_deg=0.5", "dataset.convert.align.scales=[1.0]",
-        "dataset.reader.image_size=[12,20]", "dataset.convert.shard_size=4"]
+FAST = [
+    "dataset.convert.align.resolution=1.0",
+    "dataset.convert.align.max_shift=8.0",
+    "dataset.convert.align.max_rotation_deg=0.5",
+    "dataset.convert.align.rotation_step_deg=0.5",
+    "dataset.convert.align.scales=[1.0]",
+    "dataset.reader.image_size=[12,20]",
+    "dataset.convert.shard_size=4",
+]
 
 
 def _entry(name):
@@ -34,13 +39,18 @@ def test_convert_nuscenes_entry_point(tmp_path, capsys):
     root = tmp_path / "nus"
     fx.write_nuscenes(str(root))
     osm = tmp_path / "boston.osm"
-    fx.write_osm(str(osm), maps.Projection.topocentric(*nu.MAP_ORIGINS["boston-seaport"])
-                 .to_lonlat)
-    _entry("convert_nuscenes")([
-        f"dataset.reader.dataroot={root}", "dataset.reader.version=v1.0-mini",
-        f"dataset.convert.root={tmp_path}", "dataset.convert.name=nus_mini",
-        "dataset.convert.splits={train: mini_train, val: mini_val}",
-        f"+dataset.convert.osm.boston-seaport={osm}", *FAST])
+    fx.write_osm(str(osm), maps.Projection.topocentric(*nu.MAP_ORIGINS["boston-seaport"]).to_lonlat)
+    _entry("convert_nuscenes")(
+        [
+            f"dataset.reader.dataroot={root}",
+            "dataset.reader.version=v1.0-mini",
+            f"dataset.convert.root={tmp_path}",
+            "dataset.convert.name=nus_mini",
+            "dataset.convert.splits={train: mini_train, val: mini_val}",
+            f"+dataset.convert.osm.boston-seaport={osm}",
+            *FAST,
+        ]
+    )
     out = capsys.readouterr().out
     assert "split val: 3 frames {'boston-seaport': 3}" in out
     assert "OSM correction boston-seaport: shift (+0.00, +0.00) m" in out  # OSM written aligned
@@ -56,10 +66,17 @@ def test_convert_argoverse_entry_point_presets(tmp_path, capsys):
     osm = tmp_path / "pit.osm"
     lat, lon = av.CITY_FRAMES["PIT"][1]
     fx.write_osm(str(osm), maps.Projection.utm(17, origin_latlon=(lat, lon)).to_lonlat)
-    _entry("convert_argoverse")([
-        "--preset", "argo_pit", f"dataset.reader.dataroot={root}",
-        f"dataset.convert.root={tmp_path}", "~dataset.convert.splits.val",
-        f"+dataset.convert.osm.PIT={osm}", *FAST])
+    _entry("convert_argoverse")(
+        [
+            "--preset",
+            "argo_pit",
+            f"dataset.reader.dataroot={root}",
+            f"dataset.convert.root={tmp_path}",
+            "~dataset.convert.splits.val",
+            f"+dataset.convert.osm.PIT={osm}",
+            *FAST,
+        ]
+    )
     assert "split train: 2 frames {'PIT': 2}" in capsys.readouterr().out
     man = json.loads((tmp_path / "argo_pit" / "manifest.json").read_text())
     assert man["config"]["reader"]["cities"] == ["PIT"]
@@ -80,11 +97,18 @@ def test_from_tree_names_bad_keys_and_training_adds_a_variant(tmp_path):
         rconv.from_tree({"source": "av2", "reader": {"dataroot": "x", "cams": []}})
     root = tmp_path / "av2"
     fx.write_argoverse(str(root))
-    reader, cfg = rconv.from_tree({
-        "source": "av2", "reader": {"dataroot": str(root), "cities": ["MIA"],
-                                    "image_size": [12, 20]},
-        "convert": {"root": str(tmp_path), "name": "mia", "map_variants": [
-            {"kind": "hd", "channels": ["road"]}], "align": {"enabled": False}}})
+    reader, cfg = rconv.from_tree(
+        {
+            "source": "av2",
+            "reader": {"dataroot": str(root), "cities": ["MIA"], "image_size": [12, 20]},
+            "convert": {
+                "root": str(tmp_path),
+                "name": "mia",
+                "map_variants": [{"kind": "hd", "channels": ["road"]}],
+                "align": {"enabled": False},
+            },
+        }
+    )
     ddir, name = rconv.convert_for_training(reader, cfg, VariantConfig("hd", channels=("road",)))
     assert name == "hd_road"
     reader.load = lambda frame: pytest.fail("sensors read again")

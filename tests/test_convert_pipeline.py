@@ -22,10 +22,18 @@ from seglocnet_jax.data.real_common import RealDataError
 
 OUT_HW = (12, 20)
 # A known OSM misalignment: OSM = TRUTH^-1(dataset), so the fit must return TRUTH.
-TRUTH = ra.Similarity(shift=(3.0, -2.0), rotation=math.radians(0.8), scale=1.0,
-                      centre=(200.0, 150.0))
-FAST_ALIGN = ra.AlignConfig(resolution=1.0, max_shift=8.0, max_rotation_deg=1.5,
-                            rotation_step_deg=0.5, scales=(1.0,), band=10.0, road_width=8.0)
+TRUTH = ra.Similarity(
+    shift=(3.0, -2.0), rotation=math.radians(0.8), scale=1.0, centre=(200.0, 150.0)
+)
+FAST_ALIGN = ra.AlignConfig(
+    resolution=1.0,
+    max_shift=8.0,
+    max_rotation_deg=1.5,
+    rotation_step_deg=0.5,
+    scales=(1.0,),
+    band=10.0,
+    road_width=8.0,
+)
 PROBES = np.array([[0.0, 0.0], [400.0, 300.0], [200.0, 150.0], [0.0, 300.0]])
 
 
@@ -39,12 +47,19 @@ def _nus_setup(tmp_path):
     osm = str(tmp_path / "boston.osm")
     proj = maps.Projection.topocentric(*nu.MAP_ORIGINS["boston-seaport"])
     fx.write_osm(osm, proj.to_lonlat, warp=_misaligned)
-    reader = nu.NuScenesReader(nu.NuScenesConfig(dataroot=root, version="v1.0-mini",
-                                                 image_size=OUT_HW))
+    reader = nu.NuScenesReader(
+        nu.NuScenesConfig(dataroot=root, version="v1.0-mini", image_size=OUT_HW)
+    )
     cfg = rconv.ConvertConfig(
-        name="nus_tiny", root=str(tmp_path / "out"), seed=3, shard_size=2,
-        splits={"train": "mini_train", "val": "mini_val"}, osm={"boston-seaport": osm},
-        map_variants=({"kind": "hd"}, {"kind": "sd", "road_width": 8.0}), align=FAST_ALIGN)
+        name="nus_tiny",
+        root=str(tmp_path / "out"),
+        seed=3,
+        shard_size=2,
+        splits={"train": "mini_train", "val": "mini_val"},
+        osm={"boston-seaport": osm},
+        map_variants=({"kind": "hd"}, {"kind": "sd", "road_width": 8.0}),
+        align=FAST_ALIGN,
+    )
     return reader, cfg
 
 
@@ -96,15 +111,21 @@ def test_nuscenes_converts_to_records_and_rasters_the_loader_reads(tmp_path):
     assert loads == [f.key for f in reader.frames("mini_val")]  # train is not read again
     man = mf.read_manifest(ddir)
     assert man["complete"] and {k: v["count"] for k, v in man["splits"].items()} == {
-        "train": 3, "val": 3}
+        "train": 3,
+        "val": 3,
+    }
     assert man["splits"]["val"]["cities"] == {"boston-seaport": 3}
     # The fitted correction is stored and recovers the synthetic misalignment.
     fit = ra.Similarity.from_dict(man["alignment"]["cities"]["boston-seaport"])
     assert np.abs(fit.apply(PROBES) - TRUTH.apply(PROBES)).max() < 0.5
     hd, sd = "hd_road-building", "sd_w8_road-building"
     assert set(man["map_variants"]) == {hd, sd}
-    rasters = {v: maps.CityRaster.load(os.path.join(ddir, man["map_variants"][v]["files"][
-        "boston-seaport"])) for v in (hd, sd)}
+    rasters = {
+        v: maps.CityRaster.load(
+            os.path.join(ddir, man["map_variants"][v]["files"]["boston-seaport"])
+        )
+        for v in (hd, sd)
+    }
     # Every pose lies on the HD drivable area and on the corrected SD (OSM) roads.
     poses = np.stack([f.pose for f in reader.frames("mini_train") + reader.frames("mini_val")])
     for v in (hd, sd):
@@ -130,13 +151,15 @@ def test_nuscenes_converts_to_records_and_rasters_the_loader_reads(tmp_path):
 
 def test_config_change_and_missing_osm_are_named(tmp_path):
     reader, cfg = _nus_setup(tmp_path)
-    rconv.convert(reader, dataclasses.replace(cfg, map_variants=({"kind": "hd"},)),
-                  variants=False)
+    rconv.convert(reader, dataclasses.replace(cfg, map_variants=({"kind": "hd"},)), variants=False)
     with pytest.raises(mf.ManifestError, match=r"config\.seed: manifest 3 != config 4"):
         rconv.convert(reader, dataclasses.replace(cfg, seed=4))
     missing = dataclasses.replace(cfg, osm={"boston-seaport": str(tmp_path / "nope.osm")})
-    with pytest.raises(RealDataError, match=r"nope\.osm: OSM extract of 'boston-seaport' "
-                                            r"\(dataset\.convert\.osm\.boston-seaport\)"):
+    with pytest.raises(
+        RealDataError,
+        match=r"nope\.osm: OSM extract of 'boston-seaport' "
+        r"\(dataset\.convert\.osm\.boston-seaport\)",
+    ):
         rconv.convert(reader, missing)
     no_osm = dataclasses.replace(cfg, osm={})
     with pytest.raises(RealDataError, match=r"set dataset\.convert\.osm\.boston-seaport"):
@@ -146,19 +169,31 @@ def test_config_change_and_missing_osm_are_named(tmp_path):
 def test_argoverse_miami_converts_and_loads(tmp_path):
     root = str(tmp_path / "av2")
     fx.write_argoverse(root)
-    reader = av.ArgoverseReader(av.ArgoverseConfig(dataroot=root, cities=("MIA",),
-                                                   image_size=OUT_HW, frame_stride=3))
-    cfg = rconv.ConvertConfig(name="argo_mia_tiny", root=str(tmp_path / "out"), shard_size=4,
-                              map_variants=({"kind": "hd", "channels": ("road",)},),
-                              align=dataclasses.replace(FAST_ALIGN, enabled=False))
+    reader = av.ArgoverseReader(
+        av.ArgoverseConfig(dataroot=root, cities=("MIA",), image_size=OUT_HW, frame_stride=3)
+    )
+    cfg = rconv.ConvertConfig(
+        name="argo_mia_tiny",
+        root=str(tmp_path / "out"),
+        shard_size=4,
+        map_variants=({"kind": "hd", "channels": ("road",)},),
+        align=dataclasses.replace(FAST_ALIGN, enabled=False),
+    )
     ddir = rconv.convert(reader, cfg)
     man = mf.read_manifest(ddir)
-    assert {k: v["cities"] for k, v in man["splits"].items()} == {"train": {"MIA": 2},
-                                                                  "val": {"MIA": 2}}
+    assert {k: v["cities"] for k, v in man["splits"].items()} == {
+        "train": {"MIA": 2},
+        "val": {"MIA": 2},
+    }
     assert man["alignment"]["cities"]["MIA"]["shift_m"] == [0.0, 0.0]
     one_epoch = LoaderConfig(num_epochs=1, num_threads=0)
-    batches = list(iter(make_loader(ddir, "train", "hd_road", batch_size=2, seed=1,
-                                    train=True, config=one_epoch)))
+    batches = list(
+        iter(
+            make_loader(
+                ddir, "train", "hd_road", batch_size=2, seed=1, train=True, config=one_epoch
+            )
+        )
+    )
     assert len(batches) == 1
     b = batches[0]
     assert b["images"].shape == (2, 7, *OUT_HW, 3) and b["bev_gt"].shape == (2, 1, 128, 128)

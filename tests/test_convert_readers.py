@@ -75,8 +75,9 @@ def test_nuscenes_sample_sensors_are_in_the_lidar_time_ego_frame(nus):
     # Cameras fired after the ego moved CAM_EGO_DX forward: their mount shifts forward too.
     for i, ch in enumerate(fx.NUS_CAMERAS):
         t = s["cam_to_ego"][i]
-        np.testing.assert_allclose(t[:3, :3], fx.rot_z(fx.NUS_CAM_YAW[ch]) @ fx.CAM_FORWARD,
-                                   atol=1e-6)
+        np.testing.assert_allclose(
+            t[:3, :3], fx.rot_z(fx.NUS_CAM_YAW[ch]) @ fx.CAM_FORWARD, atol=1e-6
+        )
         np.testing.assert_allclose(t[:3, 3], [1.5 + fx.CAM_EGO_DX, 0, 1.6], atol=1e-5)
     # A point 10 m ahead of CAM_FRONT at its height projects to the principal point.
     cam_from_ego = np.linalg.inv(s["cam_to_ego"][0].astype(np.float64))
@@ -89,8 +90,9 @@ def test_nuscenes_user_split_file_and_missing_files_are_named(nus, tmp_path):
     reader, _, root = nus
     split_file = tmp_path / "splits.json"
     split_file.write_text(json.dumps({"mine": ["scene-0103"]}))
-    cfg = nu.NuScenesConfig(dataroot=root, version="v1.0-mini", image_size=OUT_HW,
-                            split_file=str(split_file))
+    cfg = nu.NuScenesConfig(
+        dataroot=root, version="v1.0-mini", image_size=OUT_HW, split_file=str(split_file)
+    )
     user = nu.NuScenesReader(cfg)
     assert {f.group for f in user.frames("mine")} == {"scene-0103"}
     with pytest.raises(rc.RealDataError, match="no split 'train'"):
@@ -126,8 +128,9 @@ def test_argoverse_frames_cities_and_drivable_area(av2):
     drivable = reader.drivable("MIA")
     for f in frames:
         log_id, t = f.key.rsplit("|", 1)
-        np.testing.assert_allclose(f.pose, facts["poses"][f"{os.path.basename(log_id)}/{t}"],
-                                   atol=1e-9)
+        np.testing.assert_allclose(
+            f.pose, facts["poses"][f"{os.path.basename(log_id)}/{t}"], atol=1e-9
+        )
         assert f.city == "MIA" and drivable.contains(Point(f.pose[:2]))
     assert not drivable.contains(Point(200.0, 135.0))
     # The city frame is UTM 17N minus the origin: the origin itself maps to (0, 0).
@@ -163,8 +166,11 @@ def test_argoverse_missing_calibration_is_named(tmp_path):
     fx.write_argoverse(str(tmp_path))
     os.remove(tmp_path / "val" / "log-mia-b" / "calibration" / "intrinsics.feather")
     reader = av.ArgoverseReader(av.ArgoverseConfig(dataroot=str(tmp_path)))
-    with pytest.raises(rc.RealDataError, match=r"log-mia-b/calibration/intrinsics\.feather: "
-                                               r"missing AV2 camera intrinsics"):
+    with pytest.raises(
+        rc.RealDataError,
+        match=r"log-mia-b/calibration/intrinsics\.feather: "
+        r"missing AV2 camera intrinsics",
+    ):
         reader.frames("val")
     with pytest.raises(rc.RealDataError, match="test: missing AV2 split directory"):
         reader.frames("test")

@@ -21,7 +21,11 @@ def test_presets_compose_and_full_is_ten_times_quick():
     quick = from_dict(PrepareConfig, _data("quick"), "data")
     full = from_dict(PrepareConfig, _data("full"), "data")
     assert (quick.num_train, quick.num_val, quick.num_test, quick.num_test_city) == (
-        2000, 300, 300, 300)
+        2000,
+        300,
+        300,
+        300,
+    )
     for key in ("num_train", "num_val", "num_test", "num_test_city"):
         assert getattr(full, key) >= 10 * getattr(quick, key), key
     assert quick.identity() != full.identity() and full.name != quick.name

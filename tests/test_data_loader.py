@@ -51,8 +51,9 @@ def test_batches_follow_the_schema(dataset):
         assert batch[key].dtype == np.dtype(dtype) and batch[key].shape == want, key
     for i in range(B):
         pose, centre = batch["pose"][i], batch["tile_center"][i]
-        np.testing.assert_allclose(batch["pose_tile"][i], [*(pose[:2] - centre), pose[2]],
-                                   atol=1e-4)
+        np.testing.assert_allclose(
+            batch["pose_tile"][i], [*(pose[:2] - centre), pose[2]], atol=1e-4
+        )
         assert np.abs(pose[:2] - centre).max() <= geometry.PRIOR_RANGE + 0.25
         tile, (cx, cy) = raster.tile(*centre)  # the centre is already on the grid
         assert (cx, cy) == tuple(centre)
@@ -166,7 +167,10 @@ def test_corrupt_record_is_named_with_file_and_index(dataset, tmp_path):
 
 def test_missing_city_raster_is_named(dataset):
     ddir, rasters = dataset
-    it = iter(ld.make_loader(ddir, "val", None, B, 0, False, config=CFG,
-                             rasters={"kouvola": rasters["kouvola"]}))
+    it = iter(
+        ld.make_loader(
+            ddir, "val", None, B, 0, False, config=CFG, rasters={"kouvola": rasters["kouvola"]}
+        )
+    )
     with pytest.raises(records.RecordError, match="no map raster for city 'helsinki'"):
         next(it)

@@ -18,7 +18,8 @@ def _shard_bytes(dataset_dir):
     for dirpath, _, files in os.walk(os.path.join(dataset_dir, "sensors")):
         for f in files:
             out[os.path.relpath(os.path.join(dirpath, f), dataset_dir)] = open(
-                os.path.join(dirpath, f), "rb").read()
+                os.path.join(dirpath, f), "rb"
+            ).read()
     return out
 
 
@@ -75,8 +76,11 @@ def test_config_mismatch_is_refused_and_nothing_is_touched(tmp_path):
     with pytest.raises(mf.ManifestError, match=r"config\.seed: manifest 5 != config 6"):
         pp.prepare(dataclasses.replace(cfg, seed=6), Factory(), variants=())
     with pytest.raises(mf.ManifestError, match=r"config\.split\.stripe_width"):
-        pp.prepare(dataclasses.replace(cfg, split=splits.SplitConfig(stripe_width=30.0)),
-                   Factory(), variants=())
+        pp.prepare(
+            dataclasses.replace(cfg, split=splits.SplitConfig(stripe_width=30.0)),
+            Factory(),
+            variants=(),
+        )
     assert _shard_bytes(ddir) == before and open(mf.manifest_path(ddir)).read() == manifest_before
 
 

@@ -79,8 +79,13 @@ def test_new_variant_only_rasterizes(tmp_path, fake_maps):
     n = len(fake_maps)
     pp.prepare_for_training(cfg, sd, DrivableFactory())
     assert len(fake_maps) == n  # stored variants are not rasterized again
-    batch = next(iter(ld.make_loader(ddir, "val", name, 4, 0, False,
-                                     config=ld.LoaderConfig(max_points=8, num_threads=0))))
+    batch = next(
+        iter(
+            ld.make_loader(
+                ddir, "val", name, 4, 0, False, config=ld.LoaderConfig(max_points=8, num_threads=0)
+            )
+        )
+    )
     raster = vr.load_variant(ddir, name, ["helsinki"])["helsinki"]
     np.testing.assert_array_equal(batch["bev_gt"][0], raster.cut_bev(batch["pose"][0]))
 

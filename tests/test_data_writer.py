@@ -25,13 +25,26 @@ def test_written_splits_load_with_seeded_priors(tmp_path):
     ddir = w.close()
     man = mf.read_manifest(ddir)
     assert man["complete"] and man["splits"]["val"]["cities"] == {"boston-seaport": 10}
-    recs = [records.decode_sample(r) for p, n in mf.split_files(man, ddir, "val")
-            for r in records.read_shard(p, n)]
+    recs = [
+        records.decode_sample(r)
+        for p, n in mf.split_files(man, ddir, "val")
+        for r in records.read_shard(p, n)
+    ]
     off = np.stack([r["prior"] - r["pose"][:2] for r in recs])
     assert np.abs(off).max() <= geometry.PRIOR_RANGE and len({tuple(o) for o in off}) == 10
     raster = random_raster(0)
-    batches = list(ld.make_loader(ddir, "val", None, 4, 0, False, rasters={
-        "boston-seaport": raster}, config=ld.LoaderConfig(max_points=64, num_threads=0)))
+    batches = list(
+        ld.make_loader(
+            ddir,
+            "val",
+            None,
+            4,
+            0,
+            False,
+            rasters={"boston-seaport": raster},
+            config=ld.LoaderConfig(max_points=64, num_threads=0),
+        )
+    )
     assert len(batches) == 3 and sum(b["valid"].sum() for b in batches) == 10
     # A re-run keeps finished shards byte for byte; another config is refused.
     before = {p: open(p, "rb").read() for p, _ in mf.split_files(man, ddir, "val")}

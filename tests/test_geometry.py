@@ -97,10 +97,12 @@ def test_cell_offset_mapping():
 
 def test_pose_from_matrix_reads_yaw_ccw_from_east_and_drops_tilt():
     yaw, pitch = 2.5, 0.1
-    rz = np.array([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0],
-                   [0, 0, 1]])
-    ry = np.array([[math.cos(pitch), 0, math.sin(pitch)], [0, 1, 0],
-                   [-math.sin(pitch), 0, math.cos(pitch)]])
+    rz = np.array(
+        [[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]]
+    )
+    ry = np.array(
+        [[math.cos(pitch), 0, math.sin(pitch)], [0, 1, 0], [-math.sin(pitch), 0, math.cos(pitch)]]
+    )
     t = np.eye(4)
     t[:3, :3] = rz @ ry
     t[:3, 3] = [10.0, -3.0, 2.0]

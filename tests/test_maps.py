@@ -34,16 +34,28 @@ OSM_XML = """<?xml version='1.0' encoding='UTF-8'?>
 </osm>
 """
 NODES = {
-    1: (24.9400, 60.1700), 2: (24.9420, 60.1700), 3: (24.9440, 60.1702),
-    10: (24.9400, 60.1705), 11: (24.9404, 60.1705), 12: (24.9404, 60.1707), 13: (24.9400, 60.1707),
-    20: (24.9420, 60.1705), 21: (24.9430, 60.1705), 22: (24.9430, 60.1710), 23: (24.9420, 60.1710),
-    24: (24.9423, 60.1706), 25: (24.9427, 60.1706), 26: (24.9427, 60.1709), 27: (24.9423, 60.1709),
+    1: (24.9400, 60.1700),
+    2: (24.9420, 60.1700),
+    3: (24.9440, 60.1702),
+    10: (24.9400, 60.1705),
+    11: (24.9404, 60.1705),
+    12: (24.9404, 60.1707),
+    13: (24.9400, 60.1707),
+    20: (24.9420, 60.1705),
+    21: (24.9430, 60.1705),
+    22: (24.9430, 60.1710),
+    23: (24.9420, 60.1710),
+    24: (24.9423, 60.1706),
+    25: (24.9427, 60.1706),
+    26: (24.9427, 60.1709),
+    27: (24.9423, 60.1709),
 }
 
 
 def write_osm_xml(path, nodes=NODES, body=None):
-    text = "\n".join(f'  <node id="{i}" version="1" lat="{lat}" lon="{lon}"/>'
-                     for i, (lon, lat) in nodes.items())
+    text = "\n".join(
+        f'  <node id="{i}" version="1" lat="{lat}" lon="{lon}"/>' for i, (lon, lat) in nodes.items()
+    )
     xml = OSM_XML.format(nodes=text)
     if body is not None:
         xml = xml[: xml.index("  <way")] + body + "</osm>\n"
@@ -64,11 +76,15 @@ def helsinki_sd(helsinki):
 
 def synthetic_city(roads, buildings=()):
     return maps.CityGeometry(
-        name="synthetic", projection=maps.Projection.tmerc(60.0, 25.0),
-        roads=tuple(maps.Road(line, "residential", None, None, False, None, i)
-                    for i, line in enumerate(roads)),
+        name="synthetic",
+        projection=maps.Projection.tmerc(60.0, 25.0),
+        roads=tuple(
+            maps.Road(line, "residential", None, None, False, None, i)
+            for i, line in enumerate(roads)
+        ),
         buildings=tuple(maps.Building(p, None, None, i, "way") for i, p in enumerate(buildings)),
-        bounds=(0.0, 0.0, 200.0, 200.0), source="<test>",
+        bounds=(0.0, 0.0, 200.0, 200.0),
+        source="<test>",
     )
 
 
@@ -81,8 +97,11 @@ def test_helsinki_has_drivable_roads_and_buildings_only(helsinki):
     assert any(r.highway == "residential" for r in helsinki.roads)
     # Multipolygon relations are assembled with their holes.
     assert any(b.osm_type == "relation" for b in helsinki.buildings)
-    assert any(len(getattr(p, "interiors", ())) for b in helsinki.buildings
-               for p in getattr(b.geometry, "geoms", [b.geometry]))
+    assert any(
+        len(getattr(p, "interiors", ()))
+        for b in helsinki.buildings
+        for p in getattr(b.geometry, "geoms", [b.geometry])
+    )
     # Default frame: a transverse Mercator centred on the data -> bounds roughly symmetric.
     x0, y0, x1, y1 = helsinki.bounds
     assert abs(x0 + x1) < 1.0 and abs(y0 + y1) < 1.0 and 800 < x1 - x0 < 1300
@@ -101,10 +120,22 @@ def test_osm_xml_reads_like_pbf(tmp_path):
     for ra, rb in zip(a.roads, b.roads, strict=True):
         assert ra.geometry.equals_exact(rb.geometry, 1e-6)
         assert (ra.highway, ra.lanes, ra.width, ra.oneway, ra.name, ra.osm_id) == (
-            rb.highway, rb.lanes, rb.width, rb.oneway, rb.name, rb.osm_id)
+            rb.highway,
+            rb.lanes,
+            rb.width,
+            rb.oneway,
+            rb.name,
+            rb.osm_id,
+        )
     road = a.roads[0]
     assert (road.highway, road.lanes, road.width, road.oneway, road.name, road.osm_id) == (
-        "residential", 2, 7.0, True, "Testikatu", 100)
+        "residential",
+        2,
+        7.0,
+        True,
+        "Testikatu",
+        100,
+    )
     # oneway=-1: the centreline is drawn in the direction of travel (node 3 -> node 1: west).
     assert road.geometry.coords[0][0] > road.geometry.coords[-1][0]
     # ~222 m of street (0.004 deg lon at 60.17 N) -> metres, not degrees.
@@ -132,11 +163,14 @@ def test_bbox_clips_and_centres_projection(tmp_path):
 # --------------------------------------------------------------------------- projections
 
 
-@pytest.mark.parametrize("proj", [
-    maps.Projection.tmerc(60.17, 24.94),
-    maps.Projection.utm(17, origin_latlon=(40.44177902989321, -80.01294377242584)),
-    maps.Projection.topocentric(42.336849169438615, -71.05785369873047),
-])
+@pytest.mark.parametrize(
+    "proj",
+    [
+        maps.Projection.tmerc(60.17, 24.94),
+        maps.Projection.utm(17, origin_latlon=(40.44177902989321, -80.01294377242584)),
+        maps.Projection.topocentric(42.336849169438615, -71.05785369873047),
+    ],
+)
 def test_projection_round_trip_below_one_millimetre(proj):
     lat0, lon0 = proj.origin_latlon
     rng = np.random.default_rng(0)
@@ -178,8 +212,12 @@ def test_building_area_matches_shapely(helsinki, helsinki_sd):
 
 
 def test_building_holes_are_empty(helsinki, helsinki_sd):
-    holes = [Polygon(ring) for b in helsinki.buildings
-             for p in getattr(b.geometry, "geoms", [b.geometry]) for ring in p.interiors]
+    holes = [
+        Polygon(ring)
+        for b in helsinki.buildings
+        for p in getattr(b.geometry, "geoms", [b.geometry])
+        for ring in p.interiors
+    ]
     others = shapely.union_all([b.geometry for b in helsinki.buildings])
     big = [h for h in holes if h.area > 100 and not others.contains(h.representative_point())]
     assert big, "expected courtyards in central Helsinki"
@@ -191,8 +229,12 @@ def test_building_holes_are_empty(helsinki, helsinki_sd):
 
 @pytest.mark.parametrize("width", [2.5, 5.0, 10.0])
 def test_sd_road_width_in_pixels(width):
-    city = synthetic_city([LineString([(20.3, 100.2), (180.7, 100.2)]),  # east-west
-                           LineString([(100.3, 20.1), (100.3, 180.9)])])  # north-south
+    city = synthetic_city(
+        [
+            LineString([(20.3, 100.2), (180.7, 100.2)]),  # east-west
+            LineString([(100.3, 20.1), (100.3, 180.9)]),
+        ]
+    )  # north-south
     r = maps.rasterize(city, maps.MapConfig(kind="sd", road_width=width, channels=("road",)))
     road = r.mask[0]
     expect = width / 0.5
@@ -223,7 +265,7 @@ def test_tile_is_slice_of_city_raster(helsinki_sd):
     assert cx / 0.5 == round(cx / 0.5) and cy / 0.5 == round(cy / 0.5)  # a pixel corner
     row = round((r.grid.y_max - cy) / 0.5)
     col = round((cx - r.grid.x_min) / 0.5)
-    np.testing.assert_array_equal(tile, r.mask[:, row - 128:row + 128, col - 128:col + 128])
+    np.testing.assert_array_equal(tile, r.mask[:, row - 128 : row + 128, col - 128 : col + 128])
     assert tile.any()
 
 
@@ -242,14 +284,13 @@ def test_cut_bev_north_heading_equals_raster_slice(helsinki_sd):
     r = helsinki_sd
     x, y = 20.0, 35.5  # a pixel corner of the grid (corners are multiples of 0.5 m)
     row, col = (int(v) for v in r.grid.snap_to_corner(x, y))
-    expect = r.mask[:, row - 64:row + 64, col - 64:col + 64]
+    expect = r.mask[:, row - 64 : row + 64, col - 64 : col + 64]
     north = r.cut_bev([x, y, math.pi / 2])
     assert north.shape == (2, 128, 128) and north.dtype == np.uint8 and north.any()
     np.testing.assert_array_equal(north, expect)
     # Facing east, forward (east) is up: the north-up slice turned a quarter counterclockwise.
     np.testing.assert_array_equal(r.cut_bev([x, y, 0.0]), np.rot90(expect, 1, axes=(1, 2)))
-    np.testing.assert_array_equal(r.cut_bev([x, y, -math.pi / 2]),
-                                  np.rot90(expect, 2, axes=(1, 2)))
+    np.testing.assert_array_equal(r.cut_bev([x, y, -math.pi / 2]), np.rot90(expect, 2, axes=(1, 2)))
 
 
 def test_cut_bevs_batch_matches_single_and_zero_outside(helsinki_sd):
@@ -296,18 +337,24 @@ def test_missing_or_non_osm_file_names_the_file(tmp_path):
 
 
 def test_no_roads_or_no_buildings_is_an_error(tmp_path):
-    building_only = ('  <way id="200" version="1"><nd ref="10"/><nd ref="11"/><nd ref="12"/>'
-                     '<nd ref="13"/><nd ref="10"/><tag k="building" v="yes"/></way>\n')
+    building_only = (
+        '  <way id="200" version="1"><nd ref="10"/><nd ref="11"/><nd ref="12"/>'
+        '<nd ref="13"/><nd ref="10"/><tag k="building" v="yes"/></way>\n'
+    )
     path = write_osm_xml(tmp_path / "no_roads.osm", body=building_only)
     with pytest.raises(maps.MapError, match="no_roads.osm: no drivable roads"):
         maps.load_city(path)
-    footway_only = ('  <way id="101" version="1"><nd ref="1"/><nd ref="3"/>'
-                    '<tag k="highway" v="footway"/></way>\n' + building_only)
+    footway_only = (
+        '  <way id="101" version="1"><nd ref="1"/><nd ref="3"/>'
+        '<tag k="highway" v="footway"/></way>\n' + building_only
+    )
     path = write_osm_xml(tmp_path / "footway.osm", body=footway_only)
     with pytest.raises(maps.MapError, match="no drivable roads"):
         maps.load_city(path)
-    road_only = ('  <way id="100" version="1"><nd ref="1"/><nd ref="2"/>'
-                 '<tag k="highway" v="primary"/></way>\n')
+    road_only = (
+        '  <way id="100" version="1"><nd ref="1"/><nd ref="2"/>'
+        '<tag k="highway" v="primary"/></way>\n'
+    )
     path = write_osm_xml(tmp_path / "no_buildings.osm", body=road_only)
     with pytest.raises(maps.MapError, match="no_buildings.osm: no buildings"):
         maps.load_city(path)
@@ -317,15 +364,18 @@ def test_no_roads_or_no_buildings_is_an_error(tmp_path):
         maps.load_city(full, bbox=(25.5, 61.0, 25.6, 61.1))
 
 
-@pytest.mark.parametrize("kwargs,match", [
-    (dict(channels=("road", "sky")), "map.channels.*'sky'"),
-    (dict(channels=()), "map.channels"),
-    (dict(channels=("road", "road")), "repeats"),
-    (dict(road_width=0.0), "map.road_width.*0.0"),
-    (dict(road_width=-5), "map.road_width.*-5"),
-    (dict(kind="xd"), "map.kind.*'xd'"),
-    (dict(resolution=0), "map.resolution"),
-])
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(channels=("road", "sky")), "map.channels.*'sky'"),
+        (dict(channels=()), "map.channels"),
+        (dict(channels=("road", "road")), "repeats"),
+        (dict(road_width=0.0), "map.road_width.*0.0"),
+        (dict(road_width=-5), "map.road_width.*-5"),
+        (dict(kind="xd"), "map.kind.*'xd'"),
+        (dict(resolution=0), "map.resolution"),
+    ],
+)
 def test_map_config_validation_names_key_and_value(kwargs, match):
     with pytest.raises(maps.MapConfigError, match=match):
         maps.MapConfig(**kwargs)
@@ -351,10 +401,20 @@ def test_embedded_city_paths_are_local():
 
 
 def test_map_section_to_configs():
-    source, cfg = maps.configs_from_section({
-        "kind": "sd", "city": "kouvola", "road_width": 5, "channels": ["building"],
-        "resolution": 0.5, "projection": "utm", "utm_zone": 35, "origin_latlon": [60.53, 26.95],
-        "utm_origin_en": None, "bbox": None})
+    source, cfg = maps.configs_from_section(
+        {
+            "kind": "sd",
+            "city": "kouvola",
+            "road_width": 5,
+            "channels": ["building"],
+            "resolution": 0.5,
+            "projection": "utm",
+            "utm_zone": 35,
+            "origin_latlon": [60.53, 26.95],
+            "utm_origin_en": None,
+            "bbox": None,
+        }
+    )
     assert cfg == maps.MapConfig(kind="sd", road_width=5.0, channels=("building",))
     assert source.make_projection() == maps.Projection.utm(35, origin_latlon=(60.53, 26.95))
     with pytest.raises(ValueError, match="map.roadwidth"):
@@ -380,9 +440,20 @@ def test_preview_command_writes_pngs(tmp_path):
     out = tmp_path / "out"
     env = dict(os.environ, SEGLOCNET_CONF=str(conf))
     proc = subprocess.run(
-        [sys.executable, "-m", "seglocnet_jax.maps.preview", f"map.city={osm_path}",
-         f"hydra.run.dir={out}", "map.road_width=5"],
-        env=env, capture_output=True, text=True, timeout=120, check=False)
+        [
+            sys.executable,
+            "-m",
+            "seglocnet_jax.maps.preview",
+            f"map.city={osm_path}",
+            f"hydra.run.dir={out}",
+            "map.road_width=5",
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     city = np.asarray(Image.open(out / "tiny_sd_city.png"))
     tile = np.asarray(Image.open(out / "tiny_sd_tile.png"))

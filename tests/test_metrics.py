@@ -27,9 +27,17 @@ def test_summary_of_hand_computed_errors():
     yaw = np.array([0.2, 2.0, 1.0, 9.0, 30.0])  # degrees
     r = metrics.summarize(pos, yaw)
     assert r == {
-        "R@1m": 20.0, "R@2m": 60.0, "R@5m": 80.0, "R@10m": 80.0,
-        "R@1deg": 20.0, "R@2deg": 40.0, "R@5deg": 60.0, "R@10deg": 80.0,
-        "APE": pytest.approx(19.0 / 5), "AOE": pytest.approx(42.2 / 5), "count": 5,
+        "R@1m": 20.0,
+        "R@2m": 60.0,
+        "R@5m": 80.0,
+        "R@10m": 80.0,
+        "R@1deg": 20.0,
+        "R@2deg": 40.0,
+        "R@5deg": 60.0,
+        "R@10deg": 80.0,
+        "APE": pytest.approx(19.0 / 5),
+        "AOE": pytest.approx(42.2 / 5),
+        "count": 5,
     }
 
 
@@ -56,9 +64,12 @@ def test_markdown_table_in_paper_layout():
     r = metrics.summarize([0.5, 1.5], [0.5, 20.0])
     table = metrics.markdown_table({"GT seg, SD": r})
     lines = table.splitlines()
-    assert lines[0] == ("| Method | R@1m | R@2m | R@5m | R@10m | R@1° | R@2° | R@5° | R@10° "
-                        "| APE (m) | AOE (°) |")
+    assert lines[0] == (
+        "| Method | R@1m | R@2m | R@5m | R@10m | R@1° | R@2° | R@5° | R@10° | APE (m) | AOE (°) |"
+    )
     assert lines[1] == "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
-    assert lines[2] == ("| GT seg, SD | 50.00 | 100.00 | 100.00 | 100.00 | 50.00 | 50.00 "
-                        "| 50.00 | 50.00 | 1.00 | 10.25 |")
+    assert lines[2] == (
+        "| GT seg, SD | 50.00 | 100.00 | 100.00 | 100.00 | 50.00 | 50.00 "
+        "| 50.00 | 50.00 | 1.00 | 10.25 |"
+    )
     assert metrics.markdown_table([("a", r), ("b", r)]).count("\n") == 3

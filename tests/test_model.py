@@ -107,14 +107,15 @@ def _numpy_voxelize(points, mask, grid, voxel_size, z_min):
 def test_voxelize_matches_numpy_reference():
     rng = np.random.default_rng(1)
     n = 3000
-    pts = np.concatenate([rng.uniform(-40, 40, (n, 2)), rng.uniform(-3, 5, (n, 1)),
-                          rng.uniform(0, 1, (n, 1))], axis=1).astype(np.float32)
+    pts = np.concatenate(
+        [rng.uniform(-40, 40, (n, 2)), rng.uniform(-3, 5, (n, 1)), rng.uniform(0, 1, (n, 1))],
+        axis=1,
+    ).astype(np.float32)
     pts[:200] = pts[200:400]  # duplicates: several points per voxel
     pts[400, :3] = (32.0, 32.0, 4.0)  # exactly on the far edges: outside
     mask = rng.random(n) > 0.2
     grid = (128, 128, 12)
-    got = np.asarray(jax.jit(lidar.voxelize, static_argnums=(2, 3, 4))(pts, mask, grid, 0.5,
-                                                                         -2.0))
+    got = np.asarray(jax.jit(lidar.voxelize, static_argnums=(2, 3, 4))(pts, mask, grid, 0.5, -2.0))
     want = _numpy_voxelize(pts, mask, grid, 0.5, -2.0)
     assert got.shape == (128, 128, 12, 3)
     np.testing.assert_allclose(got, want, atol=1e-5)

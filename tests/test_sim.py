@@ -50,21 +50,35 @@ def tiny_city() -> _City:
         _Road(shapely.LineString([(0, 80), (80, 80), (160, 80)]), "secondary", lanes=4),
         _Road(shapely.LineString([(0, 160), (80, 160), (160, 160)]), "residential", oneway=True),
     ]
-    roads += [_Road(shapely.LineString([(x, 0), (x, 80), (x, 160)]), "tertiary")
-              for x in (0.0, 80.0, 160.0)]
+    roads += [
+        _Road(shapely.LineString([(x, 0), (x, 80), (x, 160)]), "tertiary")
+        for x in (0.0, 80.0, 160.0)
+    ]
     blds = []
     for bx in (0, 80):
         for by in (0, 80):
-            blds.append(_Building(shapely.box(bx + 14, by + 14, bx + 36, by + 36),
-                                  tags={"building:levels": "4"}))
-            blds.append(_Building(shapely.box(bx + 44, by + 14, bx + 66, by + 66),
-                                  tags={"height": "12"}))
+            blds.append(
+                _Building(
+                    shapely.box(bx + 14, by + 14, bx + 36, by + 36), tags={"building:levels": "4"}
+                )
+            )
+            blds.append(
+                _Building(shapely.box(bx + 44, by + 14, bx + 66, by + 66), tags={"height": "12"})
+            )
     return _City("tiny", tuple(roads), tuple(blds), (-20.0, -20.0, 180.0, 180.0))
 
 
 EXACT = dict(missing_buildings=0.0, extra_buildings=0.0, shifted_buildings=0.0)
-SENSORS = SensorConfig(image_height=32, image_width=80, lidar_beams=16, lidar_azimuths=256,
-                       max_range=50.0, range_noise=0.0, dropout=0.0, chunk=2)
+SENSORS = SensorConfig(
+    image_height=32,
+    image_width=80,
+    lidar_beams=16,
+    lidar_azimuths=256,
+    max_range=50.0,
+    range_noise=0.0,
+    dropout=0.0,
+    chunk=2,
+)
 
 
 @pytest.fixture(scope="module")
@@ -161,8 +175,12 @@ def test_trajectories_stay_on_road_and_respect_oneway(world):
     np.testing.assert_array_equal(poses, drive(world, np.random.default_rng(5), 400, 3.0))
     assert shapely.contains_xy(world.drivable, poses[:, 0], poses[:, 1]).all()
     # The one-way street at y = 160 runs east only (world road offset is <= 1.5 m).
-    on_oneway = ((np.abs(poses[:, 1] - 160) < 4) & (poses[:, 0] > 10) & (poses[:, 0] < 150)
-                 & (np.abs(poses[:, 0] - 80) > 10))  # away from the crossing streets
+    on_oneway = (
+        (np.abs(poses[:, 1] - 160) < 4)
+        & (poses[:, 0] > 10)
+        & (poses[:, 0] < 150)
+        & (np.abs(poses[:, 0] - 80) > 10)
+    )  # away from the crossing streets
     assert on_oneway.sum() > 5
     assert np.all(np.cos(poses[on_oneway, 2]) > 0.9)
     # Two-way streets carry both directions, each on its right-hand side.
@@ -196,9 +214,10 @@ def test_world_widths_offsets_and_discrepancies(city):
     assert widths["residential"] < widths["secondary"]
     lateral = []
     for road in world.roads:  # world centre is displaced 0.5-1.5 m from the OSM centreline
-        np.testing.assert_array_equal(road.osm_centerline[[0, -1]],
-                                      np.asarray(city.roads[road.osm_index].geometry.coords)[
-                                          [0, -1]])
+        np.testing.assert_array_equal(
+            road.osm_centerline[[0, -1]],
+            np.asarray(city.roads[road.osm_index].geometry.coords)[[0, -1]],
+        )
         shift = np.linalg.norm(road.centerline - road.osm_centerline, axis=1)
         assert shift.min() >= 0.5 - 1e-9 and shift.max() <= 1.5 + 1e-9
         assert np.abs(np.diff(shift)).max() < 0.1  # smoothly (vertices 2 m apart)
@@ -207,7 +226,7 @@ def test_world_widths_offsets_and_discrepancies(city):
     assert np.mean(np.concatenate(lateral)) > 0.3
     extra = build_world(city, WorldConfig(**dict(EXACT, extra_buildings=0.5)), seed=1)
     assert len(extra.buildings) == len(city.buildings) + 4  # extra buildings no map has
-    assert not any(extra.drivable.intersects(b) for b in extra.buildings[len(city.buildings):])
+    assert not any(extra.drivable.intersects(b) for b in extra.buildings[len(city.buildings) :])
     world = build_world(city, WorldConfig(missing_buildings=0.3, extra_buildings=0.0), seed=1)
     kept = set(world.osm_buildings_kept.tolist())
     assert len(kept) < len(city.buildings)

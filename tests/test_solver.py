@@ -28,7 +28,7 @@ class SyntheticRaster:
         out = np.zeros((c, g.TILE_SIZE, g.TILE_SIZE), self.mask.dtype)
         r0, r1 = max(row0, 0), min(row0 + g.TILE_SIZE, h)
         c0, c1 = max(col0, 0), min(col0 + g.TILE_SIZE, w)
-        out[:, r0 - row0:r1 - row0, c0 - col0:c1 - col0] = self.mask[:, r0:r1, c0:c1]
+        out[:, r0 - row0 : r1 - row0, c0 - col0 : c1 - col0] = self.mask[:, r0:r1, c0:c1]
         return out, (float(cx), float(cy))
 
     def cut_bev(self, pose):

@@ -42,10 +42,10 @@ def test_helsinki_gt_segmentation_is_recovered(helsinki_sd):
     cfg = solver.SolverConfig(refine=True, return_volume=True)
     argmax, refined = [], []
     for s in range(0, NUM_POSES, 8):  # 200 = 25 batches of 8: one compiled shape
-        out = solver.localize(solver.labels_to_logits(bev[s:s + 8]), tile[s:s + 8], cfg)
+        out = solver.localize(solver.labels_to_logits(bev[s : s + 8]), tile[s : s + 8], cfg)
         coarse = solver.decode(out["volume"], refine=False)
-        argmax.append(solver.tile_pose_to_world(coarse, centre[s:s + 8]))
-        refined.append(solver.tile_pose_to_world(out["pose_tile"], centre[s:s + 8]))
+        argmax.append(solver.tile_pose_to_world(coarse, centre[s : s + 8]))
+        refined.append(solver.tile_pose_to_world(out["pose_tile"], centre[s : s + 8]))
     pos0, yaw0 = metrics.pose_errors(np.concatenate(argmax), poses)
     pos1, yaw1 = metrics.pose_errors(np.concatenate(refined), poses)
 
@@ -57,8 +57,11 @@ def test_helsinki_gt_segmentation_is_recovered(helsinki_sd):
         for i in np.flatnonzero(~ok)
     ]
     print(f"\n{ok.sum()}/{NUM_POSES} recovered; failures:\n" + "\n".join(failures))
-    print(metrics.markdown_table({"argmax": metrics.summarize(pos0, yaw0),
-                                  "refined": metrics.summarize(pos1, yaw1)}))
+    print(
+        metrics.markdown_table(
+            {"argmax": metrics.summarize(pos0, yaw0), "refined": metrics.summarize(pos1, yaw1)}
+        )
+    )
     assert ok.mean() >= 0.95, "\n".join(failures)
     # Refinement: closer on the recovered samples, in position and in yaw.
     assert pos1[ok].mean() < 0.8 * pos0[ok].mean()

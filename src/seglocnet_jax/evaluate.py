@@ -14,8 +14,8 @@ hydra_app.register_resolvers()
 def main(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
-    from seglocnet_jax.training.loop import run_evaluation
     from seglocnet_jax.experiment import build_experiment
+    from seglocnet_jax.training.loop import run_evaluation
 
     hydra_app.maybe_initialize_distributed()
     tree = hydra_app.to_tree(cfg)

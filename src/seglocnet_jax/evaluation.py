@@ -87,8 +87,10 @@ def evaluate_loader(
 
 def _figure(figure_dir, batch, j, logits, probs, pose_tile, solver_cfg, channels):
     volume = solver.score_volume(
-        jax.numpy.asarray(logits[j]), jax.numpy.asarray(batch["tile"][j]),
-        solver_cfg.num_rotations, solver_cfg.method,
+        jax.numpy.asarray(logits[j]),
+        jax.numpy.asarray(batch["tile"][j]),
+        solver_cfg.num_rotations,
+        solver_cfg.method,
     )  # (K, 129, 129)
     likelihood = np.asarray(volume.max(axis=0))  # (129, 129) best score over rotations
     sid = str(batch["sample_id"][j])

@@ -50,6 +50,8 @@ class TrainConfig:
     def optim_config(self) -> OptimConfig:
         section = dict(self.optim)
         section.setdefault("total_steps", self.num_steps)
+        if section.get("warmup_steps") is None:  # default: 5% of the run, at most 100 steps
+            section["warmup_steps"] = min(100, self.num_steps // 20)
         return from_dict(OptimConfig, section, "train.optim")
 
 

@@ -202,8 +202,9 @@ def rotation_from_yaw(yaw, num_rotations: int):
     return np.mod(k, num_rotations)
 
 
-def cell_to_tile_offset(h, w, resolution: float = RESOLUTION, bev_size: int = BEV_SIZE,
-                        tile_size: int = TILE_SIZE):
+def cell_to_tile_offset(
+    h, w, resolution: float = RESOLUTION, bev_size: int = BEV_SIZE, tile_size: int = TILE_SIZE
+):
     """Score cell ``(h, w)`` (may be fractional) to the ego position relative to the tile
     centre, ``(dx east, dy north)`` metres."""
     centre = (tile_size - bev_size) / 2  # the cell whose ego point is the tile centre (64)
@@ -212,8 +213,9 @@ def cell_to_tile_offset(h, w, resolution: float = RESOLUTION, bev_size: int = BE
     return dx, dy
 
 
-def tile_offset_to_cell(dx, dy, resolution: float = RESOLUTION, bev_size: int = BEV_SIZE,
-                        tile_size: int = TILE_SIZE):
+def tile_offset_to_cell(
+    dx, dy, resolution: float = RESOLUTION, bev_size: int = BEV_SIZE, tile_size: int = TILE_SIZE
+):
     """Inverse of :func:`cell_to_tile_offset`: continuous ``(h, w)``."""
     centre = (tile_size - bev_size) / 2
     w = np.asarray(dx, np.float64) / resolution + centre

@@ -11,8 +11,9 @@ import jax.numpy as jnp
 from seglocnet_jax import solver
 
 
-def sigmoid_focal_loss(logits: jax.Array, labels: jax.Array, alpha: float = 0.25,
-                       gamma: float = 2.0) -> jax.Array:
+def sigmoid_focal_loss(
+    logits: jax.Array, labels: jax.Array, alpha: float = 0.25, gamma: float = 2.0
+) -> jax.Array:
     """Per-class sigmoid focal loss (Lin et al. 2017), mean over batch and pixels.
 
     Args:
@@ -24,8 +25,10 @@ def sigmoid_focal_loss(logits: jax.Array, labels: jax.Array, alpha: float = 0.25
       ``(C,)`` mean loss per class.
     """
     if logits.shape != labels.shape or logits.ndim != 4:
-        raise ValueError(f"focal loss expects logits and labels (B, C, H, W) of one shape, got "
-                         f"{logits.shape} and {labels.shape}")
+        raise ValueError(
+            f"focal loss expects logits and labels (B, C, H, W) of one shape, got "
+            f"{logits.shape} and {labels.shape}"
+        )
     logits = logits.astype(jnp.float32)
     labels = labels.astype(jnp.float32)
     p = jax.nn.sigmoid(logits)

@@ -126,20 +126,28 @@ def _quarter_templates(bev: jax.Array, num_rotations: int) -> jax.Array:
 
 def _check_shapes(bev, tile):
     if bev.ndim != 3 or tile.ndim != 3 or bev.shape[0] != tile.shape[0]:
-        raise ValueError(f"score_volume expects bev (C, S, S) and tile (C, T, T), got "
-                         f"{bev.shape} and {tile.shape}")
+        raise ValueError(
+            f"score_volume expects bev (C, S, S) and tile (C, T, T), got "
+            f"{bev.shape} and {tile.shape}"
+        )
     if bev.shape[1] != bev.shape[2] or tile.shape[1] != tile.shape[2]:
         raise ValueError(f"bev and tile must be square, got {bev.shape} and {tile.shape}")
     if bev.shape[1] % 2 or tile.shape[1] % 2 or tile.shape[1] < bev.shape[1]:
-        raise ValueError(f"bev and tile sizes must be even with tile >= bev, got "
-                         f"{bev.shape[1]} and {tile.shape[1]}")
+        raise ValueError(
+            f"bev and tile sizes must be even with tile >= bev, got "
+            f"{bev.shape[1]} and {tile.shape[1]}"
+        )
 
 
 def _score_conv(bev, tile, num_rotations):
     templates = rotated_templates(bev, num_rotations)  # (K, C, S, S)
     out = jax.lax.conv_general_dilated(
-        tile[None], templates, window_strides=(1, 1), padding="VALID",
-        dimension_numbers=("NCHW", "OIHW", "NCHW"), precision=jax.lax.Precision.HIGHEST,
+        tile[None],
+        templates,
+        window_strides=(1, 1),
+        padding="VALID",
+        dimension_numbers=("NCHW", "OIHW", "NCHW"),
+        precision=jax.lax.Precision.HIGHEST,
     )
     return out[0]  # (K, T-S+1, T-S+1)
 
@@ -167,8 +175,13 @@ def _score_fft(bev, tile, num_rotations, rotation_chunk):
 
 
 @functools.partial(jax.jit, static_argnames=("num_rotations", "method", "rotation_chunk"))
-def score_volume(bev: jax.Array, tile: jax.Array, num_rotations: int = geometry.NUM_ROTATIONS,
-                 method: str = "fft", rotation_chunk: int = 2) -> jax.Array:
+def score_volume(
+    bev: jax.Array,
+    tile: jax.Array,
+    num_rotations: int = geometry.NUM_ROTATIONS,
+    method: str = "fft",
+    rotation_chunk: int = 2,
+) -> jax.Array:
     """Raw score volume of one sample.
 
     Args:
@@ -192,10 +205,16 @@ def score_volume(bev: jax.Array, tile: jax.Array, num_rotations: int = geometry.
 
 
 @functools.partial(
-    jax.jit, static_argnames=("num_rotations", "method", "rotation_chunk", "batch_chunk"))
-def score_volume_batch(bevs: jax.Array, tiles: jax.Array,
-                       num_rotations: int = geometry.NUM_ROTATIONS, method: str = "fft",
-                       rotation_chunk: int = 2, batch_chunk: int = 1) -> jax.Array:
+    jax.jit, static_argnames=("num_rotations", "method", "rotation_chunk", "batch_chunk")
+)
+def score_volume_batch(
+    bevs: jax.Array,
+    tiles: jax.Array,
+    num_rotations: int = geometry.NUM_ROTATIONS,
+    method: str = "fft",
+    rotation_chunk: int = 2,
+    batch_chunk: int = 1,
+) -> jax.Array:
     """:func:`score_volume` over a batch: ``(B, C, 128, 128)``, ``(B, C, 256, 256)`` ->
     ``(B, K, 129, 129)``.
 
@@ -203,8 +222,9 @@ def score_volume_batch(bevs: jax.Array, tiles: jax.Array,
     (``lax.map``); 0 vmaps the whole batch (accelerators). One sample at a time is fastest on
     CPU, where a sample already fills the caches.
     """
-    fn = functools.partial(score_volume, num_rotations=num_rotations, method=method,
-                           rotation_chunk=rotation_chunk)
+    fn = functools.partial(
+        score_volume, num_rotations=num_rotations, method=method, rotation_chunk=rotation_chunk
+    )
     if not batch_chunk or batch_chunk >= bevs.shape[0]:
         return jax.vmap(fn)(bevs, tiles)
     return jax.lax.map(lambda x: fn(*x), (bevs, tiles), batch_size=batch_chunk)
@@ -320,11 +340,15 @@ def localize(bev_logits: jax.Array, tiles: jax.Array, cfg: SolverConfig = Solver
       (possibly refined) ``(k, h, w)``, ``score (B,)`` the peak raw score, and ``volume
       (B, K, 129, 129)`` when ``cfg.return_volume``.
     """
-    volume = score_volume_batch(bev_logits, tiles, cfg.num_rotations, cfg.method,
-                                cfg.rotation_chunk, cfg.batch_chunk)
+    volume = score_volume_batch(
+        bev_logits, tiles, cfg.num_rotations, cfg.method, cfg.rotation_chunk, cfg.batch_chunk
+    )
     cell, peak = decode_cell(volume, refine=cfg.refine)
-    out = {"pose_tile": cell_to_pose(cell, cfg.num_rotations, size=volume.shape[-1]),
-           "cell": cell, "score": peak}
+    out = {
+        "pose_tile": cell_to_pose(cell, cfg.num_rotations, size=volume.shape[-1]),
+        "cell": cell,
+        "score": peak,
+    }
     if cfg.return_volume:
         out["volume"] = volume
     return out
@@ -338,7 +362,17 @@ def tile_pose_to_world(pose_tile, tile_center) -> np.ndarray:
 
 
 __all__ = [
-    "SolverConfig", "rotate_bev", "rotated_templates", "score_volume", "score_volume_batch",
-    "log_softmax_volume", "labels_to_logits", "decode_cell", "cell_to_pose", "pose_to_cell",
-    "decode", "localize", "tile_pose_to_world",
+    "SolverConfig",
+    "rotate_bev",
+    "rotated_templates",
+    "score_volume",
+    "score_volume_batch",
+    "log_softmax_volume",
+    "labels_to_logits",
+    "decode_cell",
+    "cell_to_pose",
+    "pose_to_cell",
+    "decode",
+    "localize",
+    "tile_pose_to_world",
 ]

@@ -43,8 +43,9 @@ class UpperBoundResult:
     metrics: dict
 
 
-def sample_priors(poses, rng: np.random.Generator,
-                  prior_range: float = geometry.PRIOR_RANGE) -> np.ndarray:
+def sample_priors(
+    poses, rng: np.random.Generator, prior_range: float = geometry.PRIOR_RANGE
+) -> np.ndarray:
     """Priors ``(N, 2)``: GT position plus a uniform offset in ``[-range, range]`` m per axis."""
     poses = np.asarray(poses, np.float64)
     return poses[:, :2] + rng.uniform(-prior_range, prior_range, size=(len(poses), 2))
@@ -56,8 +57,10 @@ def gt_inputs(raster, poses, priors) -> tuple[np.ndarray, np.ndarray, np.ndarray
     poses = np.asarray(poses, np.float64)
     priors = np.asarray(priors, np.float64)
     if poses.ndim != 2 or poses.shape[1] != 3 or priors.shape != (len(poses), 2):
-        raise ValueError(f"gt_inputs expects poses (N, 3) and priors (N, 2), got "
-                         f"{poses.shape} and {priors.shape}")
+        raise ValueError(
+            f"gt_inputs expects poses (N, 3) and priors (N, 2), got "
+            f"{poses.shape} and {priors.shape}"
+        )
     bevs, tiles, centres = [], [], []
     for pose, prior in zip(poses, priors, strict=True):
         bevs.append(np.asarray(raster.cut_bev(pose), np.float32))
@@ -67,9 +70,15 @@ def gt_inputs(raster, poses, priors) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return np.stack(bevs), np.stack(tiles), np.asarray(centres, np.float64)
 
 
-def gt_upper_bound(raster, poses, priors, cfg: solver.SolverConfig | None = None,
-                   batch_size: int = 8, metrics_cfg: metrics.MetricsConfig | None = None,
-                   progress: bool = True) -> UpperBoundResult:
+def gt_upper_bound(
+    raster,
+    poses,
+    priors,
+    cfg: solver.SolverConfig | None = None,
+    batch_size: int = 8,
+    metrics_cfg: metrics.MetricsConfig | None = None,
+    progress: bool = True,
+) -> UpperBoundResult:
     """Localizes the GT segmentation at each pose against the tile around its prior.
 
     Args:
@@ -92,8 +101,9 @@ def gt_upper_bound(raster, poses, priors, cfg: solver.SolverConfig | None = None
     priors = np.asarray(priors, np.float64)
     n = len(poses)
     preds, centres, scores = [], [], []
-    for start in tqdm(range(0, n, batch_size), desc="gt upper bound", disable=not progress,
-                      unit="batch"):
+    for start in tqdm(
+        range(0, n, batch_size), desc="gt upper bound", disable=not progress, unit="batch"
+    ):
         stop = min(start + batch_size, n)
         bev, tile, centre = gt_inputs(raster, poses[start:stop], priors[start:stop])
         pad = batch_size - (stop - start)
@@ -108,7 +118,11 @@ def gt_upper_bound(raster, poses, priors, cfg: solver.SolverConfig | None = None
     pred = np.concatenate(preds) if preds else np.zeros((0, 3))
     pos_err, yaw_err = metrics.pose_errors(pred, poses) if n else (np.zeros(0), np.zeros(0))
     return UpperBoundResult(
-        pred=pred, gt=poses, tile_center=np.concatenate(centres) if centres else np.zeros((0, 2)),
-        score=np.concatenate(scores) if scores else np.zeros(0), pos_err=pos_err,
-        yaw_err=yaw_err, metrics=metrics.summarize(pos_err, yaw_err, metrics_cfg),
+        pred=pred,
+        gt=poses,
+        tile_center=np.concatenate(centres) if centres else np.zeros((0, 2)),
+        score=np.concatenate(scores) if scores else np.zeros(0),
+        pos_err=pos_err,
+        yaw_err=yaw_err,
+        metrics=metrics.summarize(pos_err, yaw_err, metrics_cfg),
     )

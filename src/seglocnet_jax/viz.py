@@ -42,7 +42,9 @@ def _arrow(ax, pose, color, label, res, tile_size, length_m=8.0):
     dcol = math.cos(pose[2]) * length_m / res
     drow = -math.sin(pose[2]) * length_m / res
     ax.annotate(
-        "", xy=(col + dcol, row + drow), xytext=(col, row),
+        "",
+        xy=(col + dcol, row + drow),
+        xytext=(col, row),
         arrowprops=dict(arrowstyle="-|>", color=color, lw=2),
     )
     ax.plot([col], [row], "o", color=color, ms=4, label=label)

@@ -42,8 +42,15 @@ from tqdm.auto import tqdm
 from seglocnet_jax.data import real_common as rc
 from seglocnet_jax.maps.projection import Projection
 
-RING_CAMERAS = ("ring_front_center", "ring_front_right", "ring_side_right", "ring_rear_right",
-                "ring_rear_left", "ring_side_left", "ring_front_left")
+RING_CAMERAS = (
+    "ring_front_center",
+    "ring_front_right",
+    "ring_side_right",
+    "ring_rear_right",
+    "ring_rear_left",
+    "ring_side_left",
+    "ring_front_left",
+)
 # City frame = UTM (zone, north) minus the projected origin (lat, lon) (datasets.md).
 CITY_FRAMES = {
     "ATX": (14, (30.27464237939507, -97.7404457407424)),
@@ -81,12 +88,15 @@ class ArgoverseConfig:
         if not self.cameras:
             raise ValueError("dataset.reader.cameras must name at least one ring camera")
         if self.frame_stride < 1 or self.max_sync_ms <= 0:
-            raise ValueError(f"dataset.reader.frame_stride must be >= 1 and max_sync_ms > 0, "
-                             f"got {self.frame_stride}, {self.max_sync_ms}")
+            raise ValueError(
+                f"dataset.reader.frame_stride must be >= 1 and max_sync_ms > 0, "
+                f"got {self.frame_stride}, {self.max_sync_ms}"
+            )
         for city in self.cities or ():
             if city not in CITY_FRAMES:
-                raise ValueError(f"dataset.reader.cities: unknown city {city!r}; have "
-                                 f"{sorted(CITY_FRAMES)}")
+                raise ValueError(
+                    f"dataset.reader.cities: unknown city {city!r}; have {sorted(CITY_FRAMES)}"
+                )
 
 
 def _read_feather(path: str, columns, what: str) -> dict:
@@ -97,8 +107,7 @@ def _read_feather(path: str, columns, what: str) -> dict:
         raise rc.RealDataError(f"{path}: unreadable {what} ({err})") from err
     missing = [c for c in columns if c not in table.column_names]
     if missing:
-        raise rc.RealDataError(f"{path}: {what} lacks columns {missing} "
-                               f"(has {table.column_names})")
+        raise rc.RealDataError(f"{path}: {what} lacks columns {missing} (has {table.column_names})")
     return {c: table.column(c).to_numpy(zero_copy_only=False) for c in table.column_names}
 
 
@@ -118,8 +127,10 @@ def log_city(log_dir: str) -> tuple[str, str]:
     if city is None:
         city = rc.read_json(maps[0], "AV2 log map").get("city_name")
     if city not in CITY_FRAMES:
-        raise rc.RealDataError(f"{maps[0]}: city {city!r} not in {sorted(CITY_FRAMES)} "
-                               "(expected log_map_archive_<log>____<CITY>_city_<n>.json)")
+        raise rc.RealDataError(
+            f"{maps[0]}: city {city!r} not in {sorted(CITY_FRAMES)} "
+            "(expected log_map_archive_<log>____<CITY>_city_<n>.json)"
+        )
     return maps[0], city
 
 
@@ -130,19 +141,26 @@ class _Log:
         self.dir = log_dir
         self.id = os.path.basename(log_dir)
         self.map_path, self.city = log_city(log_dir)
-        poses = _read_feather(os.path.join(log_dir, "city_SE3_egovehicle.feather"),
-                              POSE_COLUMNS, "AV2 city_SE3_egovehicle poses")
+        poses = _read_feather(
+            os.path.join(log_dir, "city_SE3_egovehicle.feather"),
+            POSE_COLUMNS,
+            "AV2 city_SE3_egovehicle poses",
+        )
         order = np.argsort(poses["timestamp_ns"])
         self.pose_t = poses["timestamp_ns"].astype(np.int64)[order]
         self.pose_q = np.stack([poses[c] for c in ("qw", "qx", "qy", "qz")], 1)[order]
         self.pose_xyz = np.stack([poses[c] for c in ("tx_m", "ty_m", "tz_m")], 1)[order]
         calib_dir = os.path.join(log_dir, "calibration")
-        ext = _read_feather(os.path.join(calib_dir, "egovehicle_SE3_sensor.feather"),
-                            ("sensor_name", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m"),
-                            "AV2 egovehicle_SE3_sensor calibration")
-        intr = _read_feather(os.path.join(calib_dir, "intrinsics.feather"),
-                             ("sensor_name", "fx_px", "fy_px", "cx_px", "cy_px"),
-                             "AV2 camera intrinsics")
+        ext = _read_feather(
+            os.path.join(calib_dir, "egovehicle_SE3_sensor.feather"),
+            ("sensor_name", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m"),
+            "AV2 egovehicle_SE3_sensor calibration",
+        )
+        intr = _read_feather(
+            os.path.join(calib_dir, "intrinsics.feather"),
+            ("sensor_name", "fx_px", "fy_px", "cx_px", "cy_px"),
+            "AV2 camera intrinsics",
+        )
         self.ego_from_cam, self.intrinsics, self.cam_t = {}, {}, {}
         for cam in cameras:
             i = np.flatnonzero(ext["sensor_name"] == cam)
@@ -150,8 +168,10 @@ class _Log:
             if not len(i) or not len(j):
                 raise rc.RealDataError(f"{calib_dir}: no calibration for camera {cam!r}")
             i, j = int(i[0]), int(j[0])
-            self.ego_from_cam[cam] = rc.se3([ext[c][i] for c in ("qw", "qx", "qy", "qz")],
-                                            [ext[c][i] for c in ("tx_m", "ty_m", "tz_m")])
+            self.ego_from_cam[cam] = rc.se3(
+                [ext[c][i] for c in ("qw", "qx", "qy", "qz")],
+                [ext[c][i] for c in ("tx_m", "ty_m", "tz_m")],
+            )
             fx, fy, cx, cy = (float(intr[c][j]) for c in ("fx_px", "fy_px", "cx_px", "cy_px"))
             self.intrinsics[cam] = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
             self.cam_t[cam] = _timestamps(os.path.join(log_dir, "sensors", "cameras", cam), ".jpg")
@@ -165,8 +185,10 @@ class _Log:
         if len(times) > 1 and abs(times[i - 1] - t) <= abs(times[i] - t):
             i -= 1
         if abs(int(times[i]) - t) > max_ns:
-            raise rc.RealDataError(f"{self.dir}: no {what} within {max_ns / 1e6:g} ms of "
-                                   f"{t} ns (nearest {int(times[i])})")
+            raise rc.RealDataError(
+                f"{self.dir}: no {what} within {max_ns / 1e6:g} ms of "
+                f"{t} ns (nearest {int(times[i])})"
+            )
         return i
 
     def world_from_ego(self, t: int, max_ns: float) -> np.ndarray:
@@ -200,13 +222,16 @@ class ArgoverseReader:
         """Logs of an AV2 split directory, filtered by ``cities``, sorted by log id."""
         split_dir = os.path.join(self.cfg.dataroot, split)
         if not os.path.isdir(split_dir):
-            raise rc.RealDataError(f"{split_dir}: missing AV2 split directory "
-                                   "(dataset.reader.dataroot / dataset.convert.splits)")
+            raise rc.RealDataError(
+                f"{split_dir}: missing AV2 split directory "
+                "(dataset.reader.dataroot / dataset.convert.splits)"
+            )
         dirs = sorted(d for d in glob.glob(os.path.join(split_dir, "*")) if os.path.isdir(d))
         keep = [d for d in dirs if self.cfg.cities is None or log_city(d)[1] in self.cfg.cities]
         if not keep:
-            raise rc.RealDataError(f"{split_dir}: no logs of cities {self.cfg.cities} among "
-                                   f"{len(dirs)} logs")
+            raise rc.RealDataError(
+                f"{split_dir}: no logs of cities {self.cfg.cities} among {len(dirs)} logs"
+            )
         return [self._log(d) for d in keep]
 
     def frames(self, split: str) -> list[rc.Frame]:
@@ -224,12 +249,21 @@ class ArgoverseReader:
                 except rc.RealDataError as err:
                     skipped.append(str(err))
                     continue
-                out.append(rc.Frame(key=f"{log.dir}|{int(t)}", city=log.city, pose=pose,
-                                    group=log.id, sample_id=f"{log.id}/{int(t)}"))
+                out.append(
+                    rc.Frame(
+                        key=f"{log.dir}|{int(t)}",
+                        city=log.city,
+                        pose=pose,
+                        group=log.id,
+                        sample_id=f"{log.id}/{int(t)}",
+                    )
+                )
         if skipped:
-            warnings.warn(f"AV2 {split}: skipped {len(skipped)} sweeps without every camera / "
-                          f"a pose within {self.cfg.max_sync_ms:g} ms, e.g. {skipped[0]}",
-                          stacklevel=2)
+            warnings.warn(
+                f"AV2 {split}: skipped {len(skipped)} sweeps without every camera / "
+                f"a pose within {self.cfg.max_sync_ms:g} ms, e.g. {skipped[0]}",
+                stacklevel=2,
+            )
         return out
 
     def load(self, frame: rc.Frame) -> dict:

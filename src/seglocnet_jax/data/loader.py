@@ -191,9 +191,17 @@ def load_rasters(dataset_dir: str | os.PathLike, map_variant: str, cities) -> di
     return load_variant(dataset_dir, map_variant, cities)
 
 
-def make_loader(dataset_dir: str | os.PathLike, split: str, map_variant: str | None,
-                batch_size: int, seed: int, train: bool, *, config: LoaderConfig | None = None,
-                rasters: dict | None = None) -> Loader:
+def make_loader(
+    dataset_dir: str | os.PathLike,
+    split: str,
+    map_variant: str | None,
+    batch_size: int,
+    seed: int,
+    train: bool,
+    *,
+    config: LoaderConfig | None = None,
+    rasters: dict | None = None,
+) -> Loader:
     """The loader of one split of a prepared dataset.
 
     Args:

@@ -28,8 +28,14 @@ from tqdm.auto import tqdm
 from seglocnet_jax.data import real_common as rc
 from seglocnet_jax.maps.projection import Projection
 
-CAMERAS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT",
-           "CAM_FRONT_LEFT")
+CAMERAS = (
+    "CAM_FRONT",
+    "CAM_FRONT_RIGHT",
+    "CAM_BACK_RIGHT",
+    "CAM_BACK",
+    "CAM_BACK_LEFT",
+    "CAM_FRONT_LEFT",
+)
 LIDAR = "LIDAR_TOP"
 TABLES = ("scene", "log", "sample", "sample_data", "calibrated_sensor", "sensor", "ego_pose")
 # South-west reference corner (lat, lon) of each map frame (nuscenes-devkit, datasets.md).
@@ -103,8 +109,10 @@ class NuScenesReader:
         self.cfg = cfg
         table_dir = os.path.join(cfg.dataroot, cfg.version)
         if not os.path.isdir(table_dir):
-            raise rc.RealDataError(f"{table_dir}: missing nuScenes table directory "
-                                   f"(dataset.reader.dataroot / dataset.reader.version)")
+            raise rc.RealDataError(
+                f"{table_dir}: missing nuScenes table directory "
+                f"(dataset.reader.dataroot / dataset.reader.version)"
+            )
         t = {n: self._table(table_dir, n) for n in TABLES}
         self._ego = {r["token"]: r for r in t["ego_pose"]}
         self._sample = {r["token"]: r for r in t["sample"]}
@@ -114,8 +122,9 @@ class NuScenesReader:
             where = f"{table_dir}/calibrated_sensor.json record {r.get('token')!r}"
             self._calib[r["token"]] = dict(
                 channel=channel[rc.field(r, "sensor_token", where)],
-                ego_from_sensor=rc.se3(rc.field(r, "rotation", where),
-                                       rc.field(r, "translation", where)),
+                ego_from_sensor=rc.se3(
+                    rc.field(r, "rotation", where), rc.field(r, "translation", where)
+                ),
                 intrinsic=r.get("camera_intrinsic") or None,
             )
         self._keyframe = {}  # (sample token, channel) -> sample_data record
@@ -125,15 +134,18 @@ class NuScenesReader:
                 if calib is None:
                     raise rc.RealDataError(
                         f"{table_dir}/sample_data.json record {r.get('token')!r}: unknown "
-                        f"calibrated_sensor_token {r.get('calibrated_sensor_token')!r}")
+                        f"calibrated_sensor_token {r.get('calibrated_sensor_token')!r}"
+                    )
                 self._keyframe[(r["sample_token"], calib["channel"])] = r
         logs = {r["token"]: r for r in t["log"]}
         self._scenes = {}  # scene name -> (record, location)
         for r in t["scene"]:
             location = rc.field(logs[r["log_token"]], "location", f"{table_dir}/log.json")
             if location not in MAP_ORIGINS:
-                raise rc.RealDataError(f"{table_dir}/log.json: unknown location {location!r} "
-                                       f"(have {sorted(MAP_ORIGINS)})")
+                raise rc.RealDataError(
+                    f"{table_dir}/log.json: unknown location {location!r} "
+                    f"(have {sorted(MAP_ORIGINS)})"
+                )
             self._scenes[r["name"]] = (r, location)
         self._table_dir = table_dir
 
@@ -157,8 +169,9 @@ class NuScenesReader:
         if self.cfg.split_file:
             table = rc.read_json(self.cfg.split_file, "nuScenes split file")
             if split not in table:
-                raise rc.RealDataError(f"{self.cfg.split_file}: no split {split!r} "
-                                       f"(have {sorted(table)})")
+                raise rc.RealDataError(
+                    f"{self.cfg.split_file}: no split {split!r} (have {sorted(table)})"
+                )
             wanted = list(table[split])
         else:
             wanted = official_scenes(split)
@@ -179,11 +192,20 @@ class NuScenesReader:
             while token:
                 sd = self._sd(token, LIDAR)
                 pose = rc.pose_of(self._world_from_ego(sd))
-                out.append(rc.Frame(key=token, city=location, pose=pose, group=scene,
-                                    sample_id=f"{scene}/{token}"))
+                out.append(
+                    rc.Frame(
+                        key=token,
+                        city=location,
+                        pose=pose,
+                        group=scene,
+                        sample_id=f"{scene}/{token}",
+                    )
+                )
                 if token not in self._sample:
-                    raise rc.RealDataError(f"{self._table_dir}/sample.json: scene {scene!r} "
-                                           f"names missing sample {token!r}")
+                    raise rc.RealDataError(
+                        f"{self._table_dir}/sample.json: scene {scene!r} "
+                        f"names missing sample {token!r}"
+                    )
                 token = self._sample[token]["next"]
         return out
 
@@ -191,14 +213,18 @@ class NuScenesReader:
         try:
             return self._keyframe[(sample_token, channel)]
         except KeyError:
-            raise rc.RealDataError(f"{self._table_dir}/sample_data.json: sample "
-                                   f"{sample_token!r} has no keyframe {channel}") from None
+            raise rc.RealDataError(
+                f"{self._table_dir}/sample_data.json: sample "
+                f"{sample_token!r} has no keyframe {channel}"
+            ) from None
 
     def _world_from_ego(self, sd: dict) -> np.ndarray:
         ego = self._ego.get(sd["ego_pose_token"])
         if ego is None:
-            raise rc.RealDataError(f"{self._table_dir}/ego_pose.json: missing token "
-                                   f"{sd['ego_pose_token']!r} (sample_data {sd['token']!r})")
+            raise rc.RealDataError(
+                f"{self._table_dir}/ego_pose.json: missing token "
+                f"{sd['ego_pose_token']!r} (sample_data {sd['token']!r})"
+            )
         return rc.se3(ego["rotation"], ego["translation"])
 
     # ----------------------------------------------------------------------- sensors
@@ -210,8 +236,10 @@ class NuScenesReader:
         path = os.path.join(self.cfg.dataroot, lidar_sd["filename"])
         raw = np.fromfile(rc.require_file(path, "LiDAR sweep"), dtype=np.float32)
         if raw.size % 5:
-            raise rc.RealDataError(f"{path}: {raw.size} floats, expected x,y,z,intensity,ring "
-                                   "records (a multiple of 5)")
+            raise rc.RealDataError(
+                f"{path}: {raw.size} floats, expected x,y,z,intensity,ring "
+                "records (a multiple of 5)"
+            )
         raw = raw.reshape(-1, 5)
         calib = self._calib[lidar_sd["calibrated_sensor_token"]]
         lidar = rc.points_to_ego(raw[:, :3], raw[:, 3], calib["ego_from_sensor"], 255.0)
@@ -220,8 +248,9 @@ class NuScenesReader:
             sd = self._sd(frame.key, channel)
             calib = self._calib[sd["calibrated_sensor_token"]]
             if calib["intrinsic"] is None:
-                raise rc.RealDataError(f"{self._table_dir}/calibrated_sensor.json: "
-                                       f"{channel} has no camera_intrinsic")
+                raise rc.RealDataError(
+                    f"{self._table_dir}/calibrated_sensor.json: {channel} has no camera_intrinsic"
+                )
             image = rc.read_rgb(os.path.join(self.cfg.dataroot, sd["filename"]))
             image, k = rc.resize_camera(image, calib["intrinsic"], self.cfg.image_size)
             t = ego_from_world @ self._world_from_ego(sd) @ calib["ego_from_sensor"]
@@ -256,8 +285,10 @@ class NuScenesReader:
         for area in rc.field(data, "drivable_area", where):
             for token in rc.field(area, "polygon_tokens", f"{where} drivable_area"):
                 if token not in polygons:
-                    raise rc.RealDataError(f"{where}: drivable_area {area.get('token')!r} "
-                                           f"names missing polygon {token!r}")
+                    raise rc.RealDataError(
+                        f"{where}: drivable_area {area.get('token')!r} "
+                        f"names missing polygon {token!r}"
+                    )
                 parts.append(_polygon(polygons[token], nodes, where))
         if not parts:
             raise rc.RealDataError(f"{where}: no drivable_area polygons")
@@ -275,8 +306,9 @@ def _polygon(record: dict, nodes: dict, where: str) -> Polygon:
         try:
             return [nodes[t] for t in tokens]
         except KeyError as err:
-            raise rc.RealDataError(f"{where}: polygon {record.get('token')!r} names missing "
-                                   f"node {err.args[0]!r}") from None
+            raise rc.RealDataError(
+                f"{where}: polygon {record.get('token')!r} names missing node {err.args[0]!r}"
+            ) from None
 
     shell = ring(rc.field(record, "exterior_node_tokens", f"{where} polygon"))
     holes = [ring(h["node_tokens"]) for h in record.get("holes", []) if h.get("node_tokens")]

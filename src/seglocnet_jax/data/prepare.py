@@ -174,16 +174,25 @@ def _planned_splits(plans: list[SplitPlan], shard_size: int) -> dict:
         n = len(plan.poses)
         count = max(1, -(-n // shard_size))
         shards = [
-            {"file": f"sensors/{plan.name}/{shard_name(plan.name, i, count)}",
-             "count": min(shard_size, n - i * shard_size)}
+            {
+                "file": f"sensors/{plan.name}/{shard_name(plan.name, i, count)}",
+                "count": min(shard_size, n - i * shard_size),
+            }
             for i in range(count)
         ]
         out[plan.name] = {"shards": shards, "count": n, "cities": {plan.city: n}}
     return out
 
 
-def write_plan(dataset_dir: str, plan: SplitPlan, split_entry: dict, render: Callable,
-               cfg: PrepareConfig, split_idx: int, progress=None) -> int:
+def write_plan(
+    dataset_dir: str,
+    plan: SplitPlan,
+    split_entry: dict,
+    render: Callable,
+    cfg: PrepareConfig,
+    split_idx: int,
+    progress=None,
+) -> int:
     """Renders and writes the missing shards of one split; returns how many were written.
 
     Existing shards are kept after checking their record count (a mismatch raises and leaves
@@ -212,10 +221,16 @@ def write_plan(dataset_dir: str, plan: SplitPlan, split_entry: dict, render: Cal
             if len(samples) != b1 - b0:
                 raise ValueError(f"render returned {len(samples)} samples for {b1 - b0} poses")
             for i, sample in enumerate(samples, start=b0):
-                sample = dict(sample, sample_id=f"{plan.city}-{plan.name}-{i:06d}",
-                              prior=np.asarray(plan.priors[i], np.float64))
-                records.append(encode_sample(sample, compress_level=cfg.png_level,
-                                             where=f"{path} record {i - start}"))
+                sample = dict(
+                    sample,
+                    sample_id=f"{plan.city}-{plan.name}-{i:06d}",
+                    prior=np.asarray(plan.priors[i], np.float64),
+                )
+                records.append(
+                    encode_sample(
+                        sample, compress_level=cfg.png_level, where=f"{path} record {i - start}"
+                    )
+                )
             if progress is not None:
                 progress.update(b1 - b0)
         write_shard(path, records)
@@ -230,8 +245,9 @@ def default_source_factory(cfg: PrepareConfig) -> Callable[[str], FrameSource]:
     return lambda city: SimSource(city, cfg.sim, cfg.seed)
 
 
-def prepare(cfg: PrepareConfig, source_factory: Callable[[str], FrameSource] | None = None,
-            *, variants=None) -> str:
+def prepare(
+    cfg: PrepareConfig, source_factory: Callable[[str], FrameSource] | None = None, *, variants=None
+) -> str:
     """Prepares (or resumes, or just checks) ``<cfg.root>/<cfg.name>``; returns that directory.
 
     ``source_factory(city) -> FrameSource`` defaults to the simulator. ``variants`` (a sequence
@@ -244,8 +260,10 @@ def prepare(cfg: PrepareConfig, source_factory: Callable[[str], FrameSource] | N
     if cfg.source != "sim" and source_factory is None:
         man = mf.read_manifest(dataset_dir)  # a converter wrote it; names the missing file
         if not man["complete"] or not _all_shards_exist(man, dataset_dir):
-            raise mf.ManifestError(f"{mf.manifest_path(dataset_dir)}: conversion is incomplete "
-                                   f"(source {cfg.source!r}); run the converter again")
+            raise mf.ManifestError(
+                f"{mf.manifest_path(dataset_dir)}: conversion is incomplete "
+                f"(source {cfg.source!r}); run the converter again"
+            )
     elif os.path.exists(mf.manifest_path(dataset_dir)):
         man = mf.read_manifest(dataset_dir)
         mf.check_config(man, identity, dataset_dir)
@@ -272,8 +290,15 @@ def prepare(cfg: PrepareConfig, source_factory: Callable[[str], FrameSource] | N
         total = sum(len(p.poses) for p in plans)
         with tqdm(total=total, desc=f"prepare {cfg.name}", unit="frame") as bar:
             for split_idx, plan in enumerate(plans):
-                write_plan(dataset_dir, plan, planned[plan.name], sources[plan.city].render,
-                           cfg, split_idx, bar)
+                write_plan(
+                    dataset_dir,
+                    plan,
+                    planned[plan.name],
+                    sources[plan.city].render,
+                    cfg,
+                    split_idx,
+                    bar,
+                )
         man = dict(man, complete=True)
         mf.write_json_atomic(mf.manifest_path(dataset_dir), man)
     if variants is None:
@@ -283,8 +308,11 @@ def prepare(cfg: PrepareConfig, source_factory: Callable[[str], FrameSource] | N
     return dataset_dir
 
 
-def prepare_for_training(cfg: PrepareConfig, variant: VariantConfig,
-                         source_factory: Callable[[str], FrameSource] | None = None):
+def prepare_for_training(
+    cfg: PrepareConfig,
+    variant: VariantConfig,
+    source_factory: Callable[[str], FrameSource] | None = None,
+):
     """What the training app calls: prepares what is missing (sensors, ``cfg.map_variants`` and
     ``variant``) and returns ``(dataset_dir, variant name)`` for :func:`loader.make_loader`."""
     wanted = [VariantConfig(**spec) for spec in cfg.map_variants]

@@ -54,11 +54,13 @@ class AlignConfig:
 
     def __post_init__(self):
         if min(self.resolution, self.max_shift, self.road_width) <= 0 or self.band < 0:
-            raise ValueError("dataset.convert.align.resolution, max_shift and road_width must "
-                             "be > 0, band >= 0")
+            raise ValueError(
+                "dataset.convert.align.resolution, max_shift and road_width must be > 0, band >= 0"
+            )
         if self.rotation_step_deg <= 0 or self.max_rotation_deg < 0:
-            raise ValueError("dataset.convert.align.rotation_step_deg must be > 0, "
-                             "max_rotation_deg >= 0")
+            raise ValueError(
+                "dataset.convert.align.rotation_step_deg must be > 0, max_rotation_deg >= 0"
+            )
         if not self.scales or min(self.scales) <= 0:
             raise ValueError(f"dataset.convert.align.scales must be positive, got {self.scales}")
 
@@ -96,15 +98,23 @@ class Similarity:
 
     def as_dict(self) -> dict:
         """JSON-able report: shift (m), rotation (deg), scale, centre (m), score."""
-        return {"shift_m": [float(v) for v in self.shift],
-                "rotation_deg": math.degrees(self.rotation), "scale": float(self.scale),
-                "centre_m": [float(v) for v in self.centre], "score": float(self.score)}
+        return {
+            "shift_m": [float(v) for v in self.shift],
+            "rotation_deg": math.degrees(self.rotation),
+            "scale": float(self.scale),
+            "centre_m": [float(v) for v in self.centre],
+            "score": float(self.score),
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> Similarity:
-        return cls(shift=tuple(d["shift_m"]), rotation=math.radians(d["rotation_deg"]),
-                   scale=float(d["scale"]), centre=tuple(d["centre_m"]),
-                   score=float(d.get("score", float("nan"))))
+        return cls(
+            shift=tuple(d["shift_m"]),
+            rotation=math.radians(d["rotation_deg"]),
+            scale=float(d["scale"]),
+            centre=tuple(d["centre_m"]),
+            score=float(d.get("score", float("nan"))),
+        )
 
 
 def _downsample(mask: np.ndarray, grid: geometry.RasterGrid, factor: int):
@@ -113,25 +123,33 @@ def _downsample(mask: np.ndarray, grid: geometry.RasterGrid, factor: int):
         raise ValueError(f"raster {mask.shape} is smaller than the alignment factor {factor}")
     small = mask[:h, :w].astype(np.float32)
     small = small.reshape(h // factor, factor, w // factor, factor).mean(axis=(1, 3))
-    return small, geometry.RasterGrid(grid.x_min, grid.y_max, h // factor, w // factor,
-                                      grid.resolution * factor)
+    return small, geometry.RasterGrid(
+        grid.x_min, grid.y_max, h // factor, w // factor, grid.resolution * factor
+    )
 
 
 def _index_from_world(grid: geometry.RasterGrid) -> np.ndarray:
     """Homogeneous ``(3, 3)``: world ``(x, y, 1)`` -> ndimage index ``(row, col, 1)`` (pixel
     centres at integers)."""
     r = grid.resolution
-    return np.array([[0, -1 / r, grid.y_max / r - 0.5], [1 / r, 0, -grid.x_min / r - 0.5],
-                     [0, 0, 1.0]])
+    return np.array(
+        [[0, -1 / r, grid.y_max / r - 0.5], [1 / r, 0, -grid.x_min / r - 0.5], [0, 0, 1.0]]
+    )
 
 
 def _warp(source: np.ndarray, src_grid, out_grid, sim: Similarity) -> np.ndarray:
     """``source`` resampled on ``out_grid`` after moving it by ``sim`` (bilinear, zero fill)."""
     world_from_out = np.linalg.inv(_index_from_world(out_grid))
     m = _index_from_world(src_grid) @ np.linalg.inv(sim.matrix()) @ world_from_out
-    return ndimage.affine_transform(source, m[:2, :2], offset=m[:2, 2],
-                                    output_shape=(out_grid.height, out_grid.width), order=1,
-                                    mode="constant", cval=0.0)
+    return ndimage.affine_transform(
+        source,
+        m[:2, :2],
+        offset=m[:2, 2],
+        output_shape=(out_grid.height, out_grid.width),
+        order=1,
+        mode="constant",
+        cval=0.0,
+    )
 
 
 def _crop_grid(grid: geometry.RasterGrid, row_c: int, col_c: int, size: int):
@@ -144,8 +162,13 @@ def _parabola(left: float, centre: float, right: float) -> float:
     return float(np.clip(0.5 * (left - right) / denom, -0.5, 0.5)) if denom < 0 else 0.0
 
 
-def fit_similarity(target: np.ndarray, source: np.ndarray, grid: geometry.RasterGrid,
-                   cfg: AlignConfig = AlignConfig(), progress: bool = True) -> Similarity:
+def fit_similarity(
+    target: np.ndarray,
+    source: np.ndarray,
+    grid: geometry.RasterGrid,
+    cfg: AlignConfig = AlignConfig(),
+    progress: bool = True,
+) -> Similarity:
     """The similarity that moves ``source`` (OSM roads) onto ``target`` (drivable area).
 
     Args:
@@ -163,8 +186,10 @@ def fit_similarity(target: np.ndarray, source: np.ndarray, grid: geometry.Raster
 
     target, source = np.asarray(target), np.asarray(source)
     if target.shape != source.shape or target.shape != (grid.height, grid.width):
-        raise ValueError(f"target {target.shape} and source {source.shape} must both match the "
-                         f"grid ({grid.height}, {grid.width})")
+        raise ValueError(
+            f"target {target.shape} and source {source.shape} must both match the "
+            f"grid ({grid.height}, {grid.width})"
+        )
     if not np.any(target):
         raise ValueError("the drivable-area raster is empty: nothing to align")
     factor = max(1, round(cfg.resolution / grid.resolution))
@@ -184,8 +209,9 @@ def fit_similarity(target: np.ndarray, source: np.ndarray, grid: geometry.Raster
     centre = wgrid.pixel_to_world(row_c, col_c)
     identity = Similarity(centre=(float(centre[0]), float(centre[1])))
     tmpl = _warp(tgt, wgrid, t_grid, identity)  # crop with zero fill, (S, S)
-    band = ndimage.binary_dilation(tmpl > 0.5, iterations=max(1, round(cfg.band /
-                                                                        wgrid.resolution)))
+    band = ndimage.binary_dilation(
+        tmpl > 0.5, iterations=max(1, round(cfg.band / wgrid.resolution))
+    )
     tmpl = np.where(band, 2.0 * tmpl - 1.0, 0.0).astype(np.float32)[None]  # (1, S, S)
     weight = float(np.clip(tmpl, 0, None).sum())
     steps = int(math.floor(cfg.max_rotation_deg / cfg.rotation_step_deg + 1e-9))
@@ -210,12 +236,17 @@ def fit_similarity(target: np.ndarray, source: np.ndarray, grid: geometry.Raster
     dh = _parabola(vol[h - 1, w], vol[h, w], vol[h + 1, w]) if 0 < h < n - 1 else 0.0
     dw = _parabola(vol[h, w - 1], vol[h, w], vol[h, w + 1]) if 0 < w < n - 1 else 0.0
     # Refine the rotation between its neighbours (the shift is that of the best candidate).
-    da = (_parabola(peaks[i, j - 1], peaks[i, j], peaks[i, j + 1])
-          if 0 < j < len(angles) - 1 else 0.0)
-    dx, dy = geometry.cell_to_tile_offset(h + dh, w + dw, resolution=wgrid.resolution,
-                                          bev_size=size, tile_size=size + 2 * shift_px)
+    da = (
+        _parabola(peaks[i, j - 1], peaks[i, j], peaks[i, j + 1]) if 0 < j < len(angles) - 1 else 0.0
+    )
+    dx, dy = geometry.cell_to_tile_offset(
+        h + dh, w + dw, resolution=wgrid.resolution, bev_size=size, tile_size=size + 2 * shift_px
+    )
     # Template centre at tile centre + (dx, dy): target(p) ~ warped(p + d), so shift by -d.
-    return Similarity(shift=(-float(dx), -float(dy)),
-                      rotation=float(angles[j] + da * math.radians(cfg.rotation_step_deg)),
-                      scale=float(scales[i]), centre=identity.centre,
-                      score=float(peaks[i, j] / max(weight, 1e-9)))
+    return Similarity(
+        shift=(-float(dx), -float(dy)),
+        rotation=float(angles[j] + da * math.radians(cfg.rotation_step_deg)),
+        scale=float(scales[i]),
+        centre=identity.centre,
+        score=float(peaks[i, j] / max(weight, 1e-9)),
+    )

@@ -140,11 +140,13 @@ def quat_to_matrix(qw, qx, qy, qz) -> np.ndarray:
     if not np.isfinite(norm) or norm < 1e-9:
         raise RealDataError(f"quaternion {q.tolist()} is not a rotation")
     w, x, y, z = q / norm
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def se3(quat_wxyz, translation) -> np.ndarray:
@@ -168,8 +170,9 @@ def pose_of(world_from_ego: np.ndarray) -> np.ndarray:
     return geometry.pose_from_matrix(world_from_ego)
 
 
-def points_to_ego(xyz: np.ndarray, intensity: np.ndarray, ego_from_sensor: np.ndarray,
-                  intensity_max: float) -> np.ndarray:
+def points_to_ego(
+    xyz: np.ndarray, intensity: np.ndarray, ego_from_sensor: np.ndarray, intensity_max: float
+) -> np.ndarray:
     """LiDAR ``(n, 3)`` sensor-frame points to ``(n, 4)`` float32 ego ``x, y, z, intensity``.
 
     ``intensity`` is divided by ``intensity_max`` and clipped to ``[0, 1]``; non-finite points

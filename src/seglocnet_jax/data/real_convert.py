@@ -58,17 +58,25 @@ class ConvertConfig:
 
     def __post_init__(self):
         if not self.splits:
-            raise ValueError("dataset.convert.splits must map at least one output split to a "
-                             "reader split")
+            raise ValueError(
+                "dataset.convert.splits must map at least one output split to a reader split"
+            )
         if self.shard_size < 1:
             raise ValueError(f"dataset.convert.shard_size must be >= 1, got {self.shard_size}")
 
     def identity(self, reader: RealReader) -> dict:
         """What defines the sensor shards: the reader's config and these keys."""
-        return json.loads(json.dumps({
-            "reader": reader.identity(), "seed": self.seed, "splits": dict(self.splits),
-            "shard_size": self.shard_size, "png_level": self.png_level,
-        }))
+        return json.loads(
+            json.dumps(
+                {
+                    "reader": reader.identity(),
+                    "seed": self.seed,
+                    "splits": dict(self.splits),
+                    "shard_size": self.shard_size,
+                    "png_level": self.png_level,
+                }
+            )
+        )
 
 
 class LazySample(Mapping):
@@ -95,8 +103,10 @@ class LazySample(Mapping):
         if self._data is None:
             data = self._reader.load(f)
             if data["sample_id"] != f.sample_id or data["city"] != f.city:
-                raise RealDataError(f"{f.key}: loaded sample {data['sample_id']!r} in "
-                                    f"{data['city']!r}, listed as {f.sample_id!r} in {f.city!r}")
+                raise RealDataError(
+                    f"{f.key}: loaded sample {data['sample_id']!r} in "
+                    f"{data['city']!r}, listed as {f.sample_id!r} in {f.city!r}"
+                )
             self._data = data
         return self._data[key]
 
@@ -120,10 +130,16 @@ def convert(reader: RealReader, cfg: ConvertConfig, *, variants: bool = True) ->
     frames = {out: reader.frames(src) for out, src in cfg.splits.items()}
     for out, fr in frames.items():
         if not fr:
-            raise RealDataError(f"dataset.convert.splits.{out}: reader split "
-                                f"{cfg.splits[out]!r} has no frames")
-    writer = DatasetWriter(dataset_dir, cfg.identity(reader), seed=cfg.seed,
-                           shard_size=cfg.shard_size, png_level=cfg.png_level)
+            raise RealDataError(
+                f"dataset.convert.splits.{out}: reader split {cfg.splits[out]!r} has no frames"
+            )
+    writer = DatasetWriter(
+        dataset_dir,
+        cfg.identity(reader),
+        seed=cfg.seed,
+        shard_size=cfg.shard_size,
+        png_level=cfg.png_level,
+    )
     for out, fr in frames.items():
         writer.write_split(out, (LazySample(reader, f) for f in fr), len(fr))
     writer.close()
@@ -153,12 +169,16 @@ def from_tree(tree: dict, prefix: str = "dataset"):
     from seglocnet_jax.config_util import ConfigError, from_dict
     from seglocnet_jax.data import argoverse, nuscenes
 
-    readers = {"nuscenes": (nuscenes.NuScenesConfig, nuscenes.NuScenesReader),
-               "av2": (argoverse.ArgoverseConfig, argoverse.ArgoverseReader)}
+    readers = {
+        "nuscenes": (nuscenes.NuScenesConfig, nuscenes.NuScenesReader),
+        "av2": (argoverse.ArgoverseConfig, argoverse.ArgoverseReader),
+    }
     unknown = sorted(set(tree) - {"source", "reader", "convert"})
     if unknown:
-        raise ConfigError(f"unknown config key(s) {[f'{prefix}.{k}' for k in unknown]}; "
-                          f"{prefix} accepts source, reader, convert")
+        raise ConfigError(
+            f"unknown config key(s) {[f'{prefix}.{k}' for k in unknown]}; "
+            f"{prefix} accepts source, reader, convert"
+        )
     source = tree.get("source")
     if source not in readers:
         raise ConfigError(f"{prefix}.source must be one of {sorted(readers)}, got {source!r}")
@@ -176,9 +196,11 @@ def summary(dataset_dir: str) -> str:
         lines.append(f"  split {name}: {split['count']} frames {split['cities']}")
     lines.append(f"  map variants: {sorted(man['map_variants'])}")
     for city, a in sorted(man.get("alignment", {}).get("cities", {}).items()):
-        lines.append(f"  OSM correction {city}: shift ({a['shift_m'][0]:+.2f}, "
-                     f"{a['shift_m'][1]:+.2f}) m, rotation {a['rotation_deg']:+.3f} deg, "
-                     f"scale {a['scale']:.4f}, score {a['score']:.3f}")
+        lines.append(
+            f"  OSM correction {city}: shift ({a['shift_m'][0]:+.2f}, "
+            f"{a['shift_m'][1]:+.2f}) m, rotation {a['rotation_deg']:+.3f} deg, "
+            f"scale {a['scale']:.4f}, score {a['score']:.3f}"
+        )
         for variant, frac in sorted(a.get("poses_on_road", {}).items()):
             lines.append(f"    poses on the road of {variant}: {100 * frac:.1f}%")
     return "\n".join(lines)

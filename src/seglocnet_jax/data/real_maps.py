@@ -49,15 +49,17 @@ def city_geometry(reader, city: str, cfg, drivable) -> maps.CityGeometry:
         bounds = (b[0] - margin, b[1] - margin, b[2] + margin, b[3] + margin)
         return maps.CityGeometry(city, projection, (), (), bounds, "")
     if not os.path.isfile(path):
-        raise RealDataError(f"{path}: OSM extract of {city!r} (dataset.convert.osm.{city}) is "
-                            "missing")
+        raise RealDataError(
+            f"{path}: OSM extract of {city!r} (dataset.convert.osm.{city}) is missing"
+        )
     bbox = _bbox_lonlat(projection, drivable.bounds, margin)
     geom = maps.load_city(path, projection=projection, bbox=bbox)
     return dataclasses.replace(geom, name=city)
 
 
-def fit_alignment(city: maps.CityGeometry, drivable, cfg: ra.AlignConfig,
-                  progress: bool = True) -> ra.Similarity:
+def fit_alignment(
+    city: maps.CityGeometry, drivable, cfg: ra.AlignConfig, progress: bool = True
+) -> ra.Similarity:
     """Similarity moving ``city``'s OSM roads onto ``drivable`` (identity when disabled)."""
     if not cfg.enabled or not city.roads:
         c = drivable.centroid
@@ -71,11 +73,14 @@ def fit_alignment(city: maps.CityGeometry, drivable, cfg: ra.AlignConfig,
 def apply_alignment(city: maps.CityGeometry, sim: ra.Similarity) -> maps.CityGeometry:
     """``city`` with every road and building moved by ``sim`` (bounds follow)."""
     params = sim.shapely_params()
-    roads = tuple(dataclasses.replace(r, geometry=affinity.affine_transform(r.geometry, params))
-                  for r in city.roads)
+    roads = tuple(
+        dataclasses.replace(r, geometry=affinity.affine_transform(r.geometry, params))
+        for r in city.roads
+    )
     buildings = tuple(
         dataclasses.replace(b, geometry=affinity.affine_transform(b.geometry, params))
-        for b in city.buildings)
+        for b in city.buildings
+    )
     x0, y0, x1, y1 = city.bounds
     corners = sim.apply(np.array([[x0, y0], [x1, y0], [x0, y1], [x1, y1]]))
     bounds = (*corners.min(0).tolist(), *corners.max(0).tolist())
@@ -93,8 +98,9 @@ def _save_atomic(raster: maps.CityRaster, path: str) -> None:
             os.remove(tmp)
 
 
-def ensure_real_variants(dataset_dir: str, reader, cfg, poses: dict | None = None,
-                         progress: bool = True) -> dict:
+def ensure_real_variants(
+    dataset_dir: str, reader, cfg, poses: dict | None = None, progress: bool = True
+) -> dict:
     """Fits (or reuses) each city's alignment and writes the missing variant rasters.
 
     Returns ``{city: alignment report}`` (shift m, rotation deg, scale, score, OSM path), also
@@ -112,8 +118,10 @@ def ensure_real_variants(dataset_dir: str, reader, cfg, poses: dict | None = Non
     if stored is not None:
         diff = mf.config_diff(stored["config"], align_cfg, "dataset.convert.align")
         if diff:
-            raise mf.ManifestError(f"{mf.manifest_path(dataset_dir)}: maps were aligned with "
-                                   f"another config: {'; '.join(diff)}; use a new directory")
+            raise mf.ManifestError(
+                f"{mf.manifest_path(dataset_dir)}: maps were aligned with "
+                f"another config: {'; '.join(diff)}; use a new directory"
+            )
     reports = dict((stored or {}).get("cities", {}))
     vcfgs = [VariantConfig(**spec) for spec in cfg.map_variants]
     for city in cities:
@@ -125,8 +133,11 @@ def ensure_real_variants(dataset_dir: str, reader, cfg, poses: dict | None = Non
             continue
         drivable = reader.drivable(city)
         osm = city_geometry(reader, city, cfg, drivable)
-        sim = (ra.Similarity.from_dict(reports[city]) if reuse
-               else fit_alignment(osm, drivable, cfg.align, progress))
+        sim = (
+            ra.Similarity.from_dict(reports[city])
+            if reuse
+            else fit_alignment(osm, drivable, cfg.align, progress)
+        )
         if not reuse:  # rasters drawn with another correction are stale
             for v in vcfgs:
                 if os.path.exists(paths[v.name]) and (v.kind == "sd" or "building" in v.channels):
@@ -138,10 +149,13 @@ def ensure_real_variants(dataset_dir: str, reader, cfg, poses: dict | None = Non
                 continue
             needs_osm = v.kind == "sd" or "building" in v.channels
             if needs_osm and not (cfg.osm or {}).get(city):
-                raise RealDataError(f"map variant {v.name!r} of {city!r} needs OSM: set "
-                                    f"dataset.convert.osm.{city} to an .osm.pbf / .osm extract")
-            map_cfg = maps.MapConfig(kind=v.kind, road_width=v.road_width,
-                                     channels=tuple(v.channels))
+                raise RealDataError(
+                    f"map variant {v.name!r} of {city!r} needs OSM: set "
+                    f"dataset.convert.osm.{city} to an .osm.pbf / .osm extract"
+                )
+            map_cfg = maps.MapConfig(
+                kind=v.kind, road_width=v.road_width, channels=tuple(v.channels)
+            )
             raster = maps.rasterize(osm, map_cfg, drivable=drivable if v.kind == "hd" else None)
             _save_atomic(raster, paths[v.name])
             if poses is not None and city in poses and "road" in v.channels:
@@ -175,4 +189,3 @@ def drivable_fraction(raster: maps.CityRaster, poses: np.ndarray) -> float:
     hit = np.zeros(len(poses), bool)
     hit[inside] = road[row[inside], col[inside]] > 0
     return float(hit.mean()) if len(hit) else float("nan")
-

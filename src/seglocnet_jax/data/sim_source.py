@@ -26,8 +26,7 @@ class SimSource:
         self._sim = sim
         self.spacing_m = float(sim_cfg.get("spacing_m", 4.0))
         world_cfg = from_dict(sim.WorldConfig, sim_cfg.get("world"), "data.prepare.sim.world")
-        sensor_cfg = from_dict(sim.SensorConfig, sim_cfg.get("sensors"),
-                               "data.prepare.sim.sensors")
+        sensor_cfg = from_dict(sim.SensorConfig, sim_cfg.get("sensors"), "data.prepare.sim.sensors")
         self.world = sim.build_world(city, world_cfg, seed)
         self.simulator = sim.Simulator(self.world, sensor_cfg)
 

@@ -46,8 +46,7 @@ class SplitConfig:
             )
 
 
-def assign_stripes(xy: np.ndarray, want: dict[str, int], cfg: SplitConfig,
-                   seed: int) -> np.ndarray:
+def assign_stripes(xy: np.ndarray, want: dict[str, int], cfg: SplitConfig, seed: int) -> np.ndarray:
     """Split name per frame before clearance, ``(N,)`` object array.
 
     The pool's longer axis is cut into stripes ``cfg.stripe_width`` wide; walking from one end
@@ -71,8 +70,9 @@ def assign_stripes(xy: np.ndarray, want: dict[str, int], cfg: SplitConfig,
     return np.array(names, dtype=object)[stripe_split[stripe]]
 
 
-def assign_frames(xy: np.ndarray, labels: np.ndarray, order: list[str],
-                  cfg: SplitConfig) -> np.ndarray:
+def assign_frames(
+    xy: np.ndarray, labels: np.ndarray, order: list[str], cfg: SplitConfig
+) -> np.ndarray:
     """Drops frames for clearance: ``labels`` with ``None`` where a frame is dropped.
 
     Splits later in ``order`` win: every frame of the last split is kept; a frame of an earlier

@@ -52,13 +52,18 @@ def variant_path(dataset_dir: str | os.PathLike, variant: str, city: str) -> str
 def _rasterize(vcfg: VariantConfig, city: str, drivable):
     from seglocnet_jax import maps  # the maps package is the one seam to OSM and rasterio
 
-    map_cfg = maps.MapConfig(kind=vcfg.kind, road_width=vcfg.road_width,
-                             channels=tuple(vcfg.channels))
+    map_cfg = maps.MapConfig(
+        kind=vcfg.kind, road_width=vcfg.road_width, channels=tuple(vcfg.channels)
+    )
     return maps.rasterize(maps.load_city(city), map_cfg, drivable=drivable)
 
 
-def ensure_variant(dataset_dir: str | os.PathLike, vcfg: VariantConfig,
-                   source_factory: Callable | None = None, sources: dict | None = None) -> str:
+def ensure_variant(
+    dataset_dir: str | os.PathLike,
+    vcfg: VariantConfig,
+    source_factory: Callable | None = None,
+    sources: dict | None = None,
+) -> str:
     """Rasterizes and stores ``vcfg`` for every city of the dataset unless already there;
     returns the variant name.
 
@@ -71,8 +76,10 @@ def ensure_variant(dataset_dir: str | os.PathLike, vcfg: VariantConfig,
     entry = man["map_variants"].get(name)
     if entry is not None:
         if entry["config"] != _plain(vcfg):
-            raise VariantError(f"{mf.manifest_path(dataset_dir)}: variant {name!r} was stored "
-                               f"with {entry['config']}, now {_plain(vcfg)}")
+            raise VariantError(
+                f"{mf.manifest_path(dataset_dir)}: variant {name!r} was stored "
+                f"with {entry['config']}, now {_plain(vcfg)}"
+            )
         if all(os.path.exists(variant_path(dataset_dir, name, c)) for c in cities):
             return name
     sources = {} if sources is None else sources
@@ -86,8 +93,10 @@ def ensure_variant(dataset_dir: str | os.PathLike, vcfg: VariantConfig,
         if vcfg.kind == "hd":
             if city not in sources:
                 if source_factory is None:
-                    raise VariantError(f"HD variant {name!r} of {city!r} needs the world's "
-                                       "drivable area: pass source_factory")
+                    raise VariantError(
+                        f"HD variant {name!r} of {city!r} needs the world's "
+                        "drivable area: pass source_factory"
+                    )
                 sources[city] = source_factory(city)
             drivable = sources[city].drivable
         raster = _rasterize(vcfg, city, drivable)

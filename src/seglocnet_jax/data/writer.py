@@ -41,8 +41,15 @@ class DatasetWriter:
       seed: prior seed; shard_size: records per shard; png_level: PNG compression level.
     """
 
-    def __init__(self, dataset_dir: str | os.PathLike, config: dict, *, seed: int = 0,
-                 shard_size: int = 250, png_level: int = 1):
+    def __init__(
+        self,
+        dataset_dir: str | os.PathLike,
+        config: dict,
+        *,
+        seed: int = 0,
+        shard_size: int = 250,
+        png_level: int = 1,
+    ):
         self.dataset_dir = os.fspath(dataset_dir)
         self.seed, self.shard_size, self.png_level = seed, shard_size, png_level
         identity = json.loads(json.dumps(config))
@@ -76,11 +83,9 @@ class DatasetWriter:
             cities[sample["city"]] = cities.get(sample["city"], 0) + 1
             buf.append(sample)
             if len(buf) == self.shard_size or i == num_samples - 1:
-                written += self._flush(split, shard, count, buf, i + 1 - len(buf), stream,
-                                       entries)
+                written += self._flush(split, shard, count, buf, i + 1 - len(buf), stream, entries)
                 buf, shard = [], shard + 1
-        self.manifest["splits"][split] = {"shards": entries, "count": num_samples,
-                                          "cities": cities}
+        self.manifest["splits"][split] = {"shards": entries, "count": num_samples, "cities": cities}
         mf.write_json_atomic(mf.manifest_path(self.dataset_dir), self.manifest)
         return written
 
@@ -90,8 +95,10 @@ class DatasetWriter:
         entries.append({"file": rel, "count": len(buf)})
         if os.path.exists(path):
             if count_records(path) != len(buf):
-                raise RecordError(f"{path}: existing shard has {count_records(path)} records, "
-                                  f"expected {len(buf)}; delete it to have it written again")
+                raise RecordError(
+                    f"{path}: existing shard has {count_records(path)} records, "
+                    f"expected {len(buf)}; delete it to have it written again"
+                )
             return 0
         xy = np.stack([np.asarray(s["pose"], np.float64)[:2] for s in buf])
         # Priors of the whole split drawn in one stream: index by the split position.
@@ -100,8 +107,9 @@ class DatasetWriter:
         for j, sample in enumerate(buf):
             if "prior" not in sample:
                 sample = dict(sample, prior=xy[j] + priors[j])
-            recs.append(encode_sample(sample, compress_level=self.png_level,
-                                      where=f"{path} record {j}"))
+            recs.append(
+                encode_sample(sample, compress_level=self.png_level, where=f"{path} record {j}")
+            )
         write_shard(path, recs)
         return 1
 

@@ -42,8 +42,9 @@ class CitySource:
             raise ConfigError(f"map.bbox must be [west, south, east, north], got {self.bbox!r}")
 
     def make_projection(self):
-        return make_projection(self.projection, self.origin_latlon, self.utm_zone,
-                               self.utm_origin_en)
+        return make_projection(
+            self.projection, self.origin_latlon, self.utm_zone, self.utm_origin_en
+        )
 
     def load(self) -> CityGeometry:
         """Reads and projects the city (:func:`seglocnet_jax.maps.load_city`)."""
@@ -60,8 +61,10 @@ def configs_from_section(section: dict | None, prefix: str = "map"):
     section = dict(section or {})
     unknown = sorted(set(section) - set(SOURCE_KEYS) - set(RASTER_KEYS))
     if unknown:
-        raise ConfigError(f"unknown config key(s) {', '.join(f'{prefix}.{k}' for k in unknown)}; "
-                          f"{prefix} accepts: {', '.join(sorted(SOURCE_KEYS + RASTER_KEYS))}")
+        raise ConfigError(
+            f"unknown config key(s) {', '.join(f'{prefix}.{k}' for k in unknown)}; "
+            f"{prefix} accepts: {', '.join(sorted(SOURCE_KEYS + RASTER_KEYS))}"
+        )
     source = from_dict(CitySource, {k: v for k, v in section.items() if k in SOURCE_KEYS}, prefix)
     raster = from_dict(MapConfig, {k: v for k, v in section.items() if k in RASTER_KEYS}, prefix)
     return source, raster

@@ -22,11 +22,25 @@ from seglocnet_jax.maps.projection import Projection
 
 # Drivable highway classes (motor traffic). Footways, cycleways, steps, paths, pedestrian zones,
 # tracks, bridleways, construction / proposed ways are not road in either map kind.
-DRIVABLE_HIGHWAYS = frozenset({
-    "motorway", "trunk", "primary", "secondary", "tertiary", "unclassified", "residential",
-    "living_street", "service", "road",
-    "motorway_link", "trunk_link", "primary_link", "secondary_link", "tertiary_link",
-})
+DRIVABLE_HIGHWAYS = frozenset(
+    {
+        "motorway",
+        "trunk",
+        "primary",
+        "secondary",
+        "tertiary",
+        "unclassified",
+        "residential",
+        "living_street",
+        "service",
+        "road",
+        "motorway_link",
+        "trunk_link",
+        "primary_link",
+        "secondary_link",
+        "tertiary_link",
+    }
+)
 
 EMBEDDED_CITIES = {"helsinki": "Helsinki.osm.pbf", "kouvola": "test.osm.pbf"}
 
@@ -115,8 +129,10 @@ def resolve_city(name_or_path: str | os.PathLike) -> tuple[str, str]:
     if text.lower() in EMBEDDED_CITIES:
         return text.lower(), embedded_city_path(text.lower())
     if not text.endswith((".osm", ".pbf", ".osm.bz2", ".osm.gz")):
-        raise MapError(f"map.city {text!r} is neither an embedded city {sorted(EMBEDDED_CITIES)} "
-                       "nor an OSM file path (.osm.pbf / .osm)")
+        raise MapError(
+            f"map.city {text!r} is neither an embedded city {sorted(EMBEDDED_CITIES)} "
+            "nor an OSM file path (.osm.pbf / .osm)"
+        )
     if not os.path.isfile(text):
         raise MapError(f"{text}: OSM file does not exist")
     base = os.path.basename(text)
@@ -136,16 +152,22 @@ def _read(path: str) -> tuple[list, list]:
     """Raw roads ``(lonlat (N, 2), tags, id)`` and buildings ``(polygon lon/lat, tags, id,
     type)`` of an OSM file."""
     roads, buildings = [], []
-    proc = (osmium.FileProcessor(path).with_locations().with_areas()
-            .with_filter(osmium.filter.KeyFilter("highway", "building")))
+    proc = (
+        osmium.FileProcessor(path)
+        .with_locations()
+        .with_areas()
+        .with_filter(osmium.filter.KeyFilter("highway", "building"))
+    )
     try:
         for obj in proc:
             if obj.is_way():
                 highway = obj.tags.get("highway")
                 if highway not in DRIVABLE_HIGHWAYS or obj.tags.get("area") == "yes":
                     continue
-                tags = {k: obj.tags.get(k) for k in ("highway", "lanes", "width", "oneway",
-                                                      "name", "junction")}
+                tags = {
+                    k: obj.tags.get(k)
+                    for k in ("highway", "lanes", "width", "oneway", "name", "junction")
+                }
                 run: list[tuple[float, float]] = []
                 for node in obj.nodes:  # split at nodes outside the extract
                     if node.location.valid():
@@ -191,12 +213,14 @@ def _line_parts(geom) -> list[LineString]:
         return []
     if geom.geom_type == "LineString":
         return [geom]
-    return [g for g in getattr(geom, "geoms", []) if g.geom_type == "LineString" and
-            not g.is_empty]
+    return [g for g in getattr(geom, "geoms", []) if g.geom_type == "LineString" and not g.is_empty]
 
 
-def load_city(name_or_path: str | os.PathLike, projection: Projection | None = None,
-              bbox: tuple[float, float, float, float] | None = None) -> CityGeometry:
+def load_city(
+    name_or_path: str | os.PathLike,
+    projection: Projection | None = None,
+    bbox: tuple[float, float, float, float] | None = None,
+) -> CityGeometry:
     """Reads a city's drivable roads and buildings into its world frame.
 
     Args:
@@ -217,16 +241,19 @@ def load_city(name_or_path: str | os.PathLike, projection: Projection | None = N
         if not (w < e and s < n):
             raise MapError(f"bbox must be (west, south, east, north) degrees, got {bbox!r}")
         lines = shapely.clip_by_rect([LineString(c) for c, _, _ in raw_roads], w, s, e, n)
-        raw_roads = [(np.asarray(part.coords), tags, oid)
-                     for line, (_, tags, oid) in zip(lines, raw_roads, strict=True)
-                     for part in _line_parts(line)]
+        raw_roads = [
+            (np.asarray(part.coords), tags, oid)
+            for line, (_, tags, oid) in zip(lines, raw_roads, strict=True)
+            for part in _line_parts(line)
+        ]
         polys = shapely.clip_by_rect([g for g, *_ in raw_buildings], w, s, e, n)
         raw_buildings = [(g, *rest) for g, (_, *rest) in zip(polys, raw_buildings, strict=True)]
     cleaned = [(_polygonal(g), *rest) for g, *rest in raw_buildings]
     raw_buildings = [b for b in cleaned if b[0] is not None]
     if not raw_roads:
-        raise MapError(f"{path}: no drivable roads (highway in {sorted(DRIVABLE_HIGHWAYS)}) in "
-                       f"{area}")
+        raise MapError(
+            f"{path}: no drivable roads (highway in {sorted(DRIVABLE_HIGHWAYS)}) in {area}"
+        )
     if not raw_buildings:
         raise MapError(f"{path}: no buildings (building=*) in {area}")
 
@@ -234,10 +261,14 @@ def load_city(name_or_path: str | os.PathLike, projection: Projection | None = N
         if bbox is not None:
             lon0, lat0 = (w + e) / 2, (s + n) / 2
         else:
-            lo = np.minimum(np.min([c.min(0) for c, _, _ in raw_roads], 0),
-                            np.min([g.bounds[:2] for g, *_ in raw_buildings], 0))
-            hi = np.maximum(np.max([c.max(0) for c, _, _ in raw_roads], 0),
-                            np.max([g.bounds[2:] for g, *_ in raw_buildings], 0))
+            lo = np.minimum(
+                np.min([c.min(0) for c, _, _ in raw_roads], 0),
+                np.min([g.bounds[:2] for g, *_ in raw_buildings], 0),
+            )
+            hi = np.maximum(
+                np.max([c.max(0) for c, _, _ in raw_roads], 0),
+                np.max([g.bounds[2:] for g, *_ in raw_buildings], 0),
+            )
             lon0, lat0 = (lo + hi) / 2
         projection = Projection.tmerc(float(lat0), float(lon0))
 
@@ -249,17 +280,35 @@ def load_city(name_or_path: str | os.PathLike, projection: Projection | None = N
     roads = []
     for line, (_, tags, oid) in zip(lines, raw_roads, strict=True):
         ow = tags["oneway"]
-        oneway = (ow in ("yes", "1", "true", "-1") or tags["junction"] == "roundabout"
-                  or (tags["highway"] == "motorway" and ow != "no"))
+        oneway = (
+            ow in ("yes", "1", "true", "-1")
+            or tags["junction"] == "roundabout"
+            or (tags["highway"] == "motorway" and ow != "no")
+        )
         if ow == "-1":  # travel against the drawing direction
             line = line.reverse()
         lanes = _number(tags["lanes"])
-        roads.append(Road(line, tags["highway"], None if lanes is None else int(lanes),
-                          _number(tags["width"]), oneway, tags["name"], oid))
+        roads.append(
+            Road(
+                line,
+                tags["highway"],
+                None if lanes is None else int(lanes),
+                _number(tags["width"]),
+                oneway,
+                tags["name"],
+                oid,
+            )
+        )
     polys = shapely.transform([g for g, *_ in raw_buildings], project)
     buildings = tuple(
-        Building(poly, _number(tags["height"]), _number(tags["building:levels"]), oid, kind,
-                 {k: v for k, v in tags.items() if v is not None})
+        Building(
+            poly,
+            _number(tags["height"]),
+            _number(tags["building:levels"]),
+            oid,
+            kind,
+            {k: v for k, v in tags.items() if v is not None},
+        )
         for poly, (_, tags, oid, kind) in zip(polys, raw_buildings, strict=True)
     )
     if bbox is not None:

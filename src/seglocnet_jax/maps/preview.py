@@ -32,10 +32,13 @@ def main(cfg: DictConfig) -> None:
         drivable = build_world(city, seed=int(preview.get("seed", 0))).drivable
     raster = maps.rasterize(city, map_cfg, drivable=drivable)
     out_dir = preview.get("out_dir") or HydraConfig.get().runtime.output_dir
-    paths = write_preview(raster, out_dir, preview.get("tile"),
-                          prefix=f"{raster.name}_{map_cfg.kind}")
-    print(f"{city.name}: {len(city.roads)} roads, {len(city.buildings)} buildings, raster "
-          f"{raster.mask.shape} -> {paths['city']}, {paths['tile']}")
+    paths = write_preview(
+        raster, out_dir, preview.get("tile"), prefix=f"{raster.name}_{map_cfg.kind}"
+    )
+    print(
+        f"{city.name}: {len(city.roads)} roads, {len(city.buildings)} buildings, raster "
+        f"{raster.mask.shape} -> {paths['city']}, {paths['tile']}"
+    )
 
 
 if __name__ == "__main__":

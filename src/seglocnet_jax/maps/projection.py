@@ -96,14 +96,18 @@ class Projection:
     def _definition(self) -> str:
         if self.kind == "tmerc":
             lat, lon = self.origin_latlon
-            return (f"+proj=tmerc +lat_0={lat!r} +lon_0={lon!r} +k=1 +x_0=0 +y_0=0 "
-                    "+ellps=WGS84 +units=m +no_defs")
+            return (
+                f"+proj=tmerc +lat_0={lat!r} +lon_0={lon!r} +k=1 +x_0=0 +y_0=0 "
+                "+ellps=WGS84 +units=m +no_defs"
+            )
         if self.kind == "utm":
             south = " +south" if self.south else ""
             return f"+proj=utm +zone={int(self.utm_zone)}{south} +datum=WGS84 +units=m +no_defs"
         lat, lon = self.origin_latlon
-        return ("+proj=pipeline +step +proj=cart +ellps=WGS84 "
-                f"+step +proj=topocentric +ellps=WGS84 +lat_0={lat!r} +lon_0={lon!r}")
+        return (
+            "+proj=pipeline +step +proj=cart +ellps=WGS84 "
+            f"+step +proj=topocentric +ellps=WGS84 +lat_0={lat!r} +lon_0={lon!r}"
+        )
 
     @functools.cached_property
     def _offset(self) -> tuple[float, float]:
@@ -146,8 +150,13 @@ class Projection:
         return np.asarray(lon, np.float64), np.asarray(lat, np.float64)
 
 
-def make_projection(kind: str | None = "tmerc", origin_latlon=None, utm_zone=None,
-                    utm_origin_en=None, south: bool = False) -> Projection | None:
+def make_projection(
+    kind: str | None = "tmerc",
+    origin_latlon=None,
+    utm_zone=None,
+    utm_origin_en=None,
+    south: bool = False,
+) -> Projection | None:
     """A :class:`Projection` from config values; ``None`` when ``kind`` is tmerc (or None) and no
     origin is given, meaning "centre a transverse Mercator on the data" (see ``osm.load_city``)."""
     kind = kind or "tmerc"

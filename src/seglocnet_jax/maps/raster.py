@@ -73,8 +73,12 @@ def rasterize_geometries(geoms, grid: g.RasterGrid) -> np.ndarray:
     if not geoms:
         return np.zeros((grid.height, grid.width), np.uint8)
     return rasterio.features.rasterize(
-        ((x, 1) for x in geoms), out_shape=(grid.height, grid.width),
-        transform=Affine(*grid.affine()), fill=0, dtype=np.uint8, all_touched=False,
+        ((x, 1) for x in geoms),
+        out_shape=(grid.height, grid.width),
+        transform=Affine(*grid.affine()),
+        fill=0,
+        dtype=np.uint8,
+        all_touched=False,
     )
 
 
@@ -86,8 +90,7 @@ def buffer_roads(city: CityGeometry, road_width: float) -> np.ndarray:
     there, and the w/2 overshoot at a dead end is within what the road surface itself occupies.
     """
     lines = np.array([r.geometry for r in city.roads], dtype=object)
-    return shapely.buffer(lines, road_width / 2, quad_segs=4, cap_style="round",
-                          join_style="round")
+    return shapely.buffer(lines, road_width / 2, quad_segs=4, cap_style="round", join_style="round")
 
 
 @dataclasses.dataclass
@@ -108,11 +111,15 @@ class CityRaster:
 
     def __post_init__(self):
         if self.mask.ndim != 3 or self.mask.shape[1:] != (self.grid.height, self.grid.width):
-            raise MapError(f"raster {self.name!r}: mask shape {self.mask.shape} does not match "
-                           f"(C, {self.grid.height}, {self.grid.width})")
+            raise MapError(
+                f"raster {self.name!r}: mask shape {self.mask.shape} does not match "
+                f"(C, {self.grid.height}, {self.grid.width})"
+            )
         if self.mask.shape[0] != len(self.channels):
-            raise MapError(f"raster {self.name!r}: {self.mask.shape[0]} mask channels but "
-                           f"channels={self.channels!r}")
+            raise MapError(
+                f"raster {self.name!r}: {self.mask.shape[0]} mask channels but "
+                f"channels={self.channels!r}"
+            )
 
     def tile(self, x: float, y: float, size: int = g.TILE_SIZE):
         """The ``(C, size, size)`` uint8 tile centred on world ``(x, y)`` snapped to the nearest
@@ -127,7 +134,7 @@ class CityRaster:
             return self.mask[:, r0:r1, c0:c1].copy(), (float(cx), float(cy))
         out = np.zeros((c, size, size), self.mask.dtype)
         if r1 > r0 and c1 > c0:
-            out[:, r0 - row0:r1 - row0, c0 - col0:c1 - col0] = self.mask[:, r0:r1, c0:c1]
+            out[:, r0 - row0 : r1 - row0, c0 - col0 : c1 - col0] = self.mask[:, r0:r1, c0:c1]
         return out, (float(cx), float(cy))
 
     def cut_bev(self, pose, size: int = g.BEV_SIZE) -> np.ndarray:
@@ -161,7 +168,10 @@ class CityRaster:
         try:
             with open(tmp, "wb") as f:
                 np.savez_compressed(
-                    f, mask=self.mask, channels=np.array(self.channels), name=np.array(self.name),
+                    f,
+                    mask=self.mask,
+                    channels=np.array(self.channels),
+                    name=np.array(self.name),
                     grid=np.array([gr.x_min, gr.y_max, gr.height, gr.width, gr.resolution]),
                 )
             os.replace(tmp, path)
@@ -182,10 +192,17 @@ class CityRaster:
         except (OSError, KeyError, ValueError) as err:
             raise MapError(f"{path}: not a city raster written by CityRaster.save ({err})") from err
         if mask.dtype != np.uint8 or grid.shape != (5,):
-            raise MapError(f"{path}: mask dtype {mask.dtype} / grid {grid.shape}: expected uint8 "
-                           "and 5 grid values")
-        grid = g.RasterGrid(x_min=float(grid[0]), y_max=float(grid[1]), height=int(grid[2]),
-                            width=int(grid[3]), resolution=float(grid[4]))
+            raise MapError(
+                f"{path}: mask dtype {mask.dtype} / grid {grid.shape}: expected uint8 "
+                "and 5 grid values"
+            )
+        grid = g.RasterGrid(
+            x_min=float(grid[0]),
+            y_max=float(grid[1]),
+            height=int(grid[2]),
+            width=int(grid[3]),
+            resolution=float(grid[4]),
+        )
         return cls(mask, grid, channels, name)
 
 
@@ -206,9 +223,11 @@ def rasterize(city: CityGeometry, cfg: MapConfig, drivable=None) -> CityRaster:
             road_geoms = list(buffer_roads(city, cfg.road_width))
         else:
             if drivable is None:
-                raise MapError(f"HD map of {city.name!r} needs the drivable area (drivable=...: "
-                               "the simulator's world or the dataset's HD map); use kind='sd' "
-                               "for OSM roads")
+                raise MapError(
+                    f"HD map of {city.name!r} needs the drivable area (drivable=...: "
+                    "the simulator's world or the dataset's HD map); use kind='sd' "
+                    "for OSM roads"
+                )
             road_geoms = [drivable] if isinstance(drivable, shapely.Geometry) else list(drivable)
             if not all(isinstance(x, shapely.Geometry) for x in road_geoms):
                 raise MapError(f"HD drivable area of {city.name!r} must be shapely geometries")

@@ -24,8 +24,9 @@ def colorize(mask: np.ndarray, channels) -> np.ndarray:
     return rgb
 
 
-def outline(rgb: np.ndarray, row0: int, col0: int, size: int, colour=(30, 90, 220),
-            thickness: int = 3) -> np.ndarray:
+def outline(
+    rgb: np.ndarray, row0: int, col0: int, size: int, colour=(30, 90, 220), thickness: int = 3
+) -> np.ndarray:
     """Draws a ``size`` square frame with top-left pixel ``(row0, col0)`` (clipped) in place."""
     h, w, _ = rgb.shape
     for r0, r1, c0, c1 in (
@@ -34,7 +35,7 @@ def outline(rgb: np.ndarray, row0: int, col0: int, size: int, colour=(30, 90, 22
         (row0, row0 + size, col0, col0 + thickness),  # left
         (row0, row0 + size, col0 + size - thickness, col0 + size),  # right
     ):
-        rgb[max(r0, 0):max(min(r1, h), 0), max(c0, 0):max(min(c1, w), 0)] = colour
+        rgb[max(r0, 0) : max(min(r1, h), 0), max(c0, 0) : max(min(c1, w), 0)] = colour
     return rgb
 
 
@@ -68,6 +69,7 @@ def write_preview(raster, out_dir: str | os.PathLike, tile_xy=None, prefix: str 
     city_rgb = outline(colorize(raster.mask, raster.channels), int(row0), int(col0), g.TILE_SIZE)
     return {
         "city": save_png(city_rgb, os.path.join(out_dir, f"{prefix}_city.png")),
-        "tile": save_png(colorize(tile, raster.channels),
-                         os.path.join(out_dir, f"{prefix}_tile.png")),
+        "tile": save_png(
+            colorize(tile, raster.channels), os.path.join(out_dir, f"{prefix}_tile.png")
+        ),
     }

@@ -36,8 +36,14 @@ def init(key: jax.Array, batch: dict, cfg: ModelConfig) -> dict:
     return variables["params"]
 
 
-def forward(params: dict, batch: dict, cfg: ModelConfig, *, train: bool = False,
-            rng: jax.Array | None = None) -> tuple[jax.Array, dict]:
+def forward(
+    params: dict,
+    batch: dict,
+    cfg: ModelConfig,
+    *,
+    train: bool = False,
+    rng: jax.Array | None = None,
+) -> tuple[jax.Array, dict]:
     """``(bev_logits (B, C, 128, 128), aux)``; see :class:`SegLocNet` for ``aux``.
 
     ``train`` enables dropout (``rng`` required when ``cfg.dropout > 0``).
@@ -46,14 +52,16 @@ def forward(params: dict, batch: dict, cfg: ModelConfig, *, train: bool = False,
     if not deterministic and rng is None:
         raise ValueError("forward(train=True) with model.dropout > 0 needs an rng key")
     rngs = None if deterministic else {"dropout": rng}
-    return build(cfg).apply({"params": params}, _model_inputs(batch, cfg),
-                            deterministic=deterministic, rngs=rngs)
+    return build(cfg).apply(
+        {"params": params}, _model_inputs(batch, cfg), deterministic=deterministic, rngs=rngs
+    )
 
 
 def nm_log_likelihood(aux: dict, num_rotations: int) -> jax.Array:
     """Log-probabilities ``(B, K, 129, 129)`` of the NM score volume of ``forward``'s aux."""
-    volume = solver.score_volume_batch(aux["bev_match"], aux["map_match"], num_rotations,
-                                       "fft", rotation_chunk=2, batch_chunk=1)
+    volume = solver.score_volume_batch(
+        aux["bev_match"], aux["map_match"], num_rotations, "fft", rotation_chunk=2, batch_chunk=1
+    )
     return solver.log_softmax_volume(volume * aux["match_scale"])
 
 
@@ -63,8 +71,10 @@ def _check_labels(batch: dict, cfg: ModelConfig):
     shape = tuple(batch["bev_gt"].shape)
     want = (cfg.num_classes, geometry.BEV_SIZE, geometry.BEV_SIZE)
     if shape[1:] != want:
-        raise ValueError(f"batch['bev_gt'] has shape {shape}, expected (B, {want[0]}, {want[1]}, "
-                         f"{want[2]}) for model.num_classes={cfg.num_classes}")
+        raise ValueError(
+            f"batch['bev_gt'] has shape {shape}, expected (B, {want[0]}, {want[1]}, "
+            f"{want[2]}) for model.num_classes={cfg.num_classes}"
+        )
     if cfg.variant == "nm" and "pose_tile" not in batch:
         raise KeyError("batch lacks key 'pose_tile' needed by the NM pose loss")
 

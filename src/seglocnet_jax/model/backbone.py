@@ -27,8 +27,10 @@ def normalize_images(images: jax.Array) -> jax.Array:
 
 def check_image_size(height: int, width: int):
     if height % STRIDE or width % STRIDE:
-        raise ValueError(f"camera images must have H and W divisible by {STRIDE} (the backbone "
-                         f"stride), got {height}x{width}: resize them in the data pipeline")
+        raise ValueError(
+            f"camera images must have H and W divisible by {STRIDE} (the backbone "
+            f"stride), got {height}x{width}: resize them in the data pipeline"
+        )
 
 
 class ResNet(nn.Module):
@@ -90,8 +92,9 @@ class VoVNet(nn.Module):
         return x
 
 
-def make_backbone(kind: str, widths: Sequence[int], blocks: Sequence[int],
-                  vovnet_layers: int) -> nn.Module:
+def make_backbone(
+    kind: str, widths: Sequence[int], blocks: Sequence[int], vovnet_layers: int
+) -> nn.Module:
     if kind == "resnet":
         return ResNet(tuple(widths), tuple(blocks))
     if kind == "vovnet":

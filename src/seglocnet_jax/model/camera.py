@@ -27,7 +27,8 @@ def depth_bins(num: int, depth_min: float, depth_max: float) -> np.ndarray:
     exactly ``depth_max``, spacing growing linearly with the index."""
     i = np.arange(1, num + 1, dtype=np.float64)
     return (depth_min + (depth_max - depth_min) * i * (i + 1) / (num * (num + 1))).astype(
-        np.float32)
+        np.float32
+    )
 
 
 def feature_pixel_centers(feat_h: int, feat_w: int, stride: int) -> np.ndarray:
@@ -42,8 +43,9 @@ def feature_pixel_centers(feat_h: int, feat_w: int, stride: int) -> np.ndarray:
     return np.stack([uu, vv], axis=-1)
 
 
-def frustum_points_ego(intrinsics: jax.Array, cam_to_ego: jax.Array, feat_hw: tuple[int, int],
-                       stride: int, depths) -> jax.Array:
+def frustum_points_ego(
+    intrinsics: jax.Array, cam_to_ego: jax.Array, feat_hw: tuple[int, int], stride: int, depths
+) -> jax.Array:
     """Ego-frame points of every feature pixel at every depth.
 
     Args:
@@ -80,8 +82,7 @@ def bev_reference_points() -> np.ndarray:
     """Ego ``(forward, left)`` of the 16x16 latent cell centres over +-32 m, normalized to
     [-1, 1]: ``(16, 16, 2)``; row 0 is the far front, columns run to the right."""
     cell = 2 * PERCEPTION_RANGE / LATENT_SIZE
-    return (geometry.bev_cell_centers_ego(LATENT_SIZE, cell) / PERCEPTION_RANGE).astype(
-        np.float32)
+    return (geometry.bev_cell_centers_ego(LATENT_SIZE, cell) / PERCEPTION_RANGE).astype(np.float32)
 
 
 class CameraEncoder(nn.Module):
@@ -97,13 +98,15 @@ class CameraEncoder(nn.Module):
         check_image_size(h, w)
         fh, fw, d = h // STRIDE, w // STRIDE, cfg.embed_dim
         x = normalize_images(images).reshape(b * n, h, w, 3)
-        x = make_backbone(cfg.backbone, cfg.backbone_widths, cfg.backbone_blocks,
-                          cfg.vovnet_layers)(x)  # (B*N, h/16, w/16, Cb)
+        x = make_backbone(
+            cfg.backbone, cfg.backbone_widths, cfg.backbone_blocks, cfg.vovnet_layers
+        )(x)  # (B*N, h/16, w/16, Cb)
         feats = nn.Dense(d, name="token_proj")(x).reshape(b, n * fh * fw, d)
 
         bins = depth_bins(cfg.depth_bins, cfg.depth_min, cfg.depth_max)
-        pts = frustum_points_ego(intrinsics.astype(jnp.float32), cam_to_ego.astype(jnp.float32),
-                                 (fh, fw), STRIDE, bins)  # (B, N, fh, fw, Db, 3)
+        pts = frustum_points_ego(
+            intrinsics.astype(jnp.float32), cam_to_ego.astype(jnp.float32), (fh, fw), STRIDE, bins
+        )  # (B, N, fh, fw, Db, 3)
         pts = normalize_ego_points(pts, cfg.pos_z_range).reshape(b, n * fh * fw, -1)
         t_pos = MLP((4 * d, d), name="position_embedding")(pts)  # (B, T, D)
 
@@ -112,7 +115,8 @@ class CameraEncoder(nn.Module):
         content = self.param("query_content", nn.initializers.normal(0.02), (ref.shape[0], d))
         q = jnp.broadcast_to(content[None], (b,) + content.shape)
         q_pos = jnp.broadcast_to(q_pos, q.shape)
-        q = TransformerDecoder(cfg.transformer_layers, cfg.num_heads, cfg.ffn_dim, cfg.dropout,
-                               name="decoder")(q, q_pos, feats, t_pos, deterministic)
+        q = TransformerDecoder(
+            cfg.transformer_layers, cfg.num_heads, cfg.ffn_dim, cfg.dropout, name="decoder"
+        )(q, q_pos, feats, t_pos, deterministic)
         latent = q.reshape(b, LATENT_SIZE, LATENT_SIZE, d)  # (B, 16, 16, D)
         return latent, {"camera_features": x.reshape(b, n, fh, fw, -1)}

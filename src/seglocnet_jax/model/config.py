@@ -102,8 +102,17 @@ class ModelConfig:
             bad("variant", f"one of {VARIANTS}")
         if self.backbone not in BACKBONES:
             bad("backbone", f"one of {BACKBONES}")
-        for key in ("num_classes", "embed_dim", "depth_bins", "transformer_layers", "num_heads",
-                    "ffn_dim", "nm_dim", "nm_num_rotations", "vovnet_layers"):
+        for key in (
+            "num_classes",
+            "embed_dim",
+            "depth_bins",
+            "transformer_layers",
+            "num_heads",
+            "ffn_dim",
+            "nm_dim",
+            "nm_num_rotations",
+            "vovnet_layers",
+        ):
             if getattr(self, key) < 1:
                 bad(key, ">= 1")
         if self.embed_dim % self.num_heads:
@@ -121,8 +130,11 @@ class ModelConfig:
         if not self.z_min < self.z_max:
             bad("z_min", f"< model.z_max={self.z_max}")
         if len(self.lidar_widths) != self.num_lidar_stages:
-            bad("lidar_widths", f"{self.num_lidar_stages} widths: voxel grid "
-                f"{self.voxel_grid[0]} down to {LATENT_SIZE} in x2 steps")
+            bad(
+                "lidar_widths",
+                f"{self.num_lidar_stages} widths: voxel grid "
+                f"{self.voxel_grid[0]} down to {LATENT_SIZE} in x2 steps",
+            )
         if not 0 <= self.lidar_3d_stages <= len(self.lidar_widths):
             bad("lidar_3d_stages", f"in [0, {len(self.lidar_widths)}]")
         if len(self.decoder_widths) != 3:
@@ -148,8 +160,10 @@ class ModelConfig:
         n = 2 * PERCEPTION_RANGE / self.voxel_size
         nz = (self.z_max - self.z_min) / self.voxel_size
         if abs(n - round(n)) > 1e-6 or abs(nz - round(nz)) > 1e-6:
-            raise ValueError(f"model.voxel_size={self.voxel_size} must divide the "
-                             f"{2 * PERCEPTION_RANGE} m range and model.z_max - model.z_min")
+            raise ValueError(
+                f"model.voxel_size={self.voxel_size} must divide the "
+                f"{2 * PERCEPTION_RANGE} m range and model.z_max - model.z_min"
+            )
         return int(round(n)), int(round(n)), int(round(nz))
 
     @property
@@ -157,8 +171,10 @@ class ModelConfig:
         n = self.voxel_grid[0]
         steps = math.log2(n / LATENT_SIZE) if n >= LATENT_SIZE else -1
         if steps < 0 or steps != int(steps):
-            raise ValueError(f"model.voxel_size={self.voxel_size}: a {n}-voxel grid does not "
-                             f"reach the {LATENT_SIZE}x{LATENT_SIZE} latent by x2 steps")
+            raise ValueError(
+                f"model.voxel_size={self.voxel_size}: a {n}-voxel grid does not "
+                f"reach the {LATENT_SIZE}x{LATENT_SIZE} latent by x2 steps"
+            )
         return int(steps)
 
 

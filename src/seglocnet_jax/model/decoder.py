@@ -1,6 +1,7 @@
 """Fusion (concatenation + 1x1 conv) and the fully convolutional semantic decoder.
 
-16x16 latent -> three x2 upsamplings (32, 64, 128) -> ``(B, 128, 128, C)`` logits in the BEV's
+16x16 latent -> residual block -> three (x2 bilinear upsampling, 3x3 conv) levels (32, 64, 128)
+-> ``(B, 128, 128, C)`` logits in the BEV's
 orientation (row 0 the far front, columns to the vehicle's right). Optional U-Net-style skips
 take the LiDAR encoder's 32x32 and 64x64 stage features, which keep geometry (kerbs, walls) that
 the 4 m latent cells blur.
@@ -38,12 +39,16 @@ class SemanticDecoder(nn.Module):
     @nn.compact
     def __call__(self, x, skips: dict | None = None):
         cfg = self.cfg
-        x = ResBlock(cfg.embed_dim)(x)
+        x = ResBlock(cfg.embed_dim)(x)  # (B, 16, 16, D)
         for width in cfg.decoder_widths:
             x = upsample2x(x)
-            skip = (skips or {}).get(skip_key(x.shape[1])) if cfg.lidar_skips else None
+            size = x.shape[1]
+            skip = (skips or {}).get(skip_key(size)) if cfg.lidar_skips else None
             if skip is not None:
+                # Squeeze the z-folded LiDAR features first: the 3x3 conv stays cheap.
+                skip = ConvNormAct(width, (1, 1), name=f"skip{size}")(skip)
                 x = jnp.concatenate([x, skip], axis=-1)
-            x = ResBlock(width)(x)
+            # One 3x3 conv per level: the 64 and 128 px levels dominate the model's FLOPs.
+            x = ConvNormAct(width, name=f"up{size}")(x)  # (B, size, size, width)
         logits = nn.Conv(cfg.num_classes, (1, 1), name="classifier")(x)  # (B, 128, 128, C)
         return logits, x

@@ -11,7 +11,6 @@ from collections.abc import Sequence
 
 import flax.linen as nn
 import jax
-import jax.numpy as jnp
 
 
 def num_groups(channels: int, max_groups: int = 8) -> int:
@@ -29,8 +28,9 @@ class ConvNormAct(nn.Module):
 
     @nn.compact
     def __call__(self, x):
-        x = nn.Conv(self.features, tuple(self.kernel), strides=self.strides, padding="SAME",
-                    use_bias=False)(x)
+        x = nn.Conv(
+            self.features, tuple(self.kernel), strides=self.strides, padding="SAME", use_bias=False
+        )(x)
         x = nn.GroupNorm(num_groups=num_groups(self.features))(x)
         return nn.relu(x) if self.act else x
 

@@ -29,8 +29,9 @@ def _bev_index_affine(num_cells: int, voxel_size: float):
     return float(r0), float(r1 - r0), float(c0), float(c1 - c0)
 
 
-def voxel_indices(points: jax.Array, mask: jax.Array, grid: tuple[int, int, int],
-                  voxel_size: float, z_min: float):
+def voxel_indices(
+    points: jax.Array, mask: jax.Array, grid: tuple[int, int, int], voxel_size: float, z_min: float
+):
     """Integer voxel ``(row, col, z)`` of each point and whether it lies in the grid.
 
     Args:
@@ -46,12 +47,13 @@ def voxel_indices(points: jax.Array, mask: jax.Array, grid: tuple[int, int, int]
     row = jnp.floor(r0 + ar * points[:, 0]).astype(jnp.int32)
     col = jnp.floor(c0 + ac * points[:, 1]).astype(jnp.int32)
     zi = jnp.floor((points[:, 2] - z_min) / voxel_size).astype(jnp.int32)
-    inside = ((row >= 0) & (row < rows) & (col >= 0) & (col < cols) & (zi >= 0) & (zi < nz))
+    inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols) & (zi >= 0) & (zi < nz)
     return jnp.stack([row, col, zi], axis=-1), inside & mask
 
 
-def voxelize(points: jax.Array, mask: jax.Array, grid: tuple[int, int, int], voxel_size: float,
-             z_min: float) -> jax.Array:
+def voxelize(
+    points: jax.Array, mask: jax.Array, grid: tuple[int, int, int], voxel_size: float, z_min: float
+) -> jax.Array:
     """Scatters one sample's points into a dense voxel grid (static shapes, padding ignored).
 
     Args:
@@ -87,7 +89,8 @@ class LidarEncoder(nn.Module):
         cfg = self.cfg
         grid = cfg.voxel_grid
         x = jax.vmap(lambda p, m: voxelize(p, m, grid, cfg.voxel_size, cfg.z_min))(
-            points.astype(jnp.float32), points_mask.astype(bool))  # (B, R, C, Z, 3)
+            points.astype(jnp.float32), points_mask.astype(bool)
+        )  # (B, R, C, Z, 3)
         stages = []
         for i, width in enumerate(cfg.lidar_widths):
             if i < cfg.lidar_3d_stages:

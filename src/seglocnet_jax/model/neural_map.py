@@ -59,6 +59,5 @@ class MatchScale(nn.Module):
 
     @nn.compact
     def __call__(self):
-        log_scale = self.param("log_scale", nn.initializers.constant(jnp.log(self.init_scale)),
-                               ())
+        log_scale = self.param("log_scale", nn.initializers.constant(jnp.log(self.init_scale)), ())
         return jnp.exp(log_scale)

@@ -38,8 +38,10 @@ def check_batch(batch: dict, cfg: ModelConfig):
     """Raises a ``KeyError`` naming the missing batch keys for ``model.modality`` / variant."""
     missing = [k for k in required_keys(cfg) if k not in batch]
     if missing:
-        raise KeyError(f"batch lacks key(s) {missing} needed by model.modality="
-                       f"{cfg.modality!r}, model.variant={cfg.variant!r}")
+        raise KeyError(
+            f"batch lacks key(s) {missing} needed by model.modality="
+            f"{cfg.modality!r}, model.variant={cfg.variant!r}"
+        )
 
 
 class SegLocNet(nn.Module):
@@ -61,7 +63,8 @@ class SegLocNet(nn.Module):
         aux, latents, skips = {}, [], {}
         if cfg.use_camera:
             cam, cam_aux = CameraEncoder(cfg, name="camera")(
-                batch["images"], batch["intrinsics"], batch["cam_to_ego"], deterministic)
+                batch["images"], batch["intrinsics"], batch["cam_to_ego"], deterministic
+            )
             aux["camera_latent"] = cam
             latents.append(cam)
         if cfg.use_lidar:
@@ -84,5 +87,7 @@ class SegLocNet(nn.Module):
 def param_groups(params: dict) -> dict[str, jax.Array]:
     """Top-level parameter groups (``camera``, ``lidar``, ``fusion``, ``decoder``, ...) with
     the global L2 norm of each: handy for gradient checks and logging."""
-    return {name: jnp.sqrt(sum(jnp.sum(jnp.square(x)) for x in jax.tree.leaves(sub)))
-            for name, sub in params.items()}
+    return {
+        name: jnp.sqrt(sum(jnp.sum(jnp.square(x)) for x in jax.tree.leaves(sub)))
+        for name, sub in params.items()
+    }

@@ -34,7 +34,7 @@ def scene_labels(rng: np.random.Generator, size: int = geometry.BEV_SIZE) -> np.
     for _ in range(int(rng.integers(3, 8))):
         h, w = rng.integers(8, 30, size=2)
         r, c = rng.integers(0, size - h), rng.integers(0, size - w)
-        building[r:r + h, c:c + w] = True
+        building[r : r + h, c : c + w] = True
     building &= ~road
     return np.stack([road, building]).astype(np.float32)
 
@@ -70,8 +70,9 @@ def camera_rig(num_cams: int, height: int, width: int, fov_deg: float = 70.0):
     return np.tile(k, (num_cams, 1, 1)), np.asarray(mats, np.float32)
 
 
-def render_cameras(labels: np.ndarray, intrinsics: np.ndarray, cam_to_ego: np.ndarray,
-                   height: int, width: int) -> np.ndarray:
+def render_cameras(
+    labels: np.ndarray, intrinsics: np.ndarray, cam_to_ego: np.ndarray, height: int, width: int
+) -> np.ndarray:
     """Flat-world render ``(N, H, W, 3)`` uint8 of the label map seen by the rig."""
     colours = np.array([[60, 140, 60], [110, 110, 110], [170, 50, 40]], np.float32)  # else,road,b
     sky = np.array([120, 170, 230], np.float32)
@@ -95,8 +96,14 @@ def render_cameras(labels: np.ndarray, intrinsics: np.ndarray, cam_to_ego: np.nd
     return np.clip(np.asarray(out), 0, 255).astype(np.uint8)
 
 
-def make_batch(seed: int, batch_size: int, num_cams: int = 6, image_hw=(64, 160),
-               num_points: int = 8192, num_rotations: int = geometry.NUM_ROTATIONS) -> dict:
+def make_batch(
+    seed: int,
+    batch_size: int,
+    num_cams: int = 6,
+    image_hw=(64, 160),
+    num_points: int = 8192,
+    num_rotations: int = geometry.NUM_ROTATIONS,
+) -> dict:
     """A batch with every ``BATCH_KEYS`` entry; the GT cell is drawn uniformly in the volume."""
     rng = np.random.default_rng(seed)
     h, w = image_hw
@@ -110,7 +117,7 @@ def make_batch(seed: int, batch_size: int, num_cams: int = 6, image_hw=(64, 160)
         out["points"].append(lidar_points(rng, labels, num_points))
         ch, cw = rng.integers(0, geometry.SCORE_SIZE, size=2)
         tile = np.zeros((2, geometry.TILE_SIZE, geometry.TILE_SIZE), np.float32)
-        tile[:, ch:ch + geometry.BEV_SIZE, cw:cw + geometry.BEV_SIZE] = labels
+        tile[:, ch : ch + geometry.BEV_SIZE, cw : cw + geometry.BEV_SIZE] = labels
         out["tile"].append(tile)
         dx, dy = geometry.cell_to_tile_offset(ch, cw)
         yaw = geometry.yaw_from_rotation(0, num_rotations)

@@ -21,13 +21,15 @@ class DecoderLayer(nn.Module):
     @nn.compact
     def __call__(self, q, q_pos, tokens, t_pos, deterministic: bool = True):
         # q, q_pos: (B, Q, D); tokens, t_pos: (B, T, D)
-        attn = dict(num_heads=self.num_heads, dropout_rate=self.dropout,
-                    deterministic=deterministic)
+        attn = dict(
+            num_heads=self.num_heads, dropout_rate=self.dropout, deterministic=deterministic
+        )
         h = nn.LayerNorm()(q)
         q = q + nn.MultiHeadDotProductAttention(**attn, name="self_attn")(h + q_pos, h + q_pos, h)
         h = nn.LayerNorm()(q)
         q = q + nn.MultiHeadDotProductAttention(**attn, name="cross_attn")(
-            h + q_pos, tokens + t_pos, tokens)
+            h + q_pos, tokens + t_pos, tokens
+        )
         h = nn.LayerNorm()(q)
         h = nn.Dense(self.ffn_dim)(h)
         h = nn.Dropout(self.dropout, deterministic=deterministic)(nn.gelu(h))
@@ -46,5 +48,6 @@ class TransformerDecoder(nn.Module):
     def __call__(self, q, q_pos, tokens, t_pos, deterministic: bool = True) -> jax.Array:
         for _ in range(self.num_layers):
             q = DecoderLayer(self.num_heads, self.ffn_dim, self.dropout)(
-                q, q_pos, tokens, t_pos, deterministic)
+                q, q_pos, tokens, t_pos, deterministic
+            )
         return nn.LayerNorm()(q)

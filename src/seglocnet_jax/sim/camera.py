@@ -50,8 +50,17 @@ def draw_lighting(rng: np.random.Generator, night_prob: float, dusk_prob: float)
     }
 
 
-def shade(hits: dict, slopes, light: dict, palette, cell0, resolution: float, key,
-          pixel_noise: float, level_height: float = 3.2):
+def shade(
+    hits: dict,
+    slopes,
+    light: dict,
+    palette,
+    cell0,
+    resolution: float,
+    key,
+    pixel_noise: float,
+    level_height: float = 3.2,
+):
     """RGB in [0, 1] per ray, shape ``(C, R, 3)``.
 
     ``hits``: :func:`render.march` output; ``slopes`` (C, R); ``palette`` (Things, 256, 3);
@@ -81,8 +90,9 @@ def shade(hits: dict, slopes, light: dict, palette, cell0, resolution: float, ke
     is_bld = (cls == cl.Thing.BUILDING) & (kind == THING)
     wall = is_bld & (hits["face"] != TOP)
     window = wall & (fz > 1.0) & (fz < 2.3) & (fu > 0.2) & (fu < 0.7) & (z > 0.5)
-    lit = window & (hash01(hits["colour"] * 131 + floor.astype(jnp.int32),
-                           win_idx.astype(jnp.int32), 3) < 0.35)
+    lit = window & (
+        hash01(hits["colour"] * 131 + floor.astype(jnp.int32), win_idx.astype(jnp.int32), 3) < 0.35
+    )
     line = wall & (fz < 0.18)
     obj = jnp.where(window[..., None], _GLASS, base * (0.9 + 0.15 * grain))
     obj = jnp.where(line[..., None], obj * 0.7, obj)
@@ -92,8 +102,9 @@ def shade(hits: dict, slopes, light: dict, palette, cell0, resolution: float, ke
     obj = jnp.where((is_car & (z < 0.35))[..., None], jnp.array([0.06, 0.06, 0.06]), obj)
 
     face = hits["face"]
-    shading = jnp.where(face == TOP, 1.0, jnp.where(face == X_FACE, light["face_x"],
-                                                    light["face_y"]))
+    shading = jnp.where(
+        face == TOP, 1.0, jnp.where(face == X_FACE, light["face_x"], light["face_y"])
+    )
     shading = jnp.where(kind == THING, shading, 1.0)[..., None]
     lamp = light["lamp"] * jnp.exp(-d / 18.0)[..., None]
     colour = jnp.where((kind == THING)[..., None], obj, ground)

@@ -21,15 +21,16 @@ from seglocnet_jax.sim.simulator import Simulator
 from seglocnet_jax.sim.trajectory import drive
 from seglocnet_jax.sim.world import WorldConfig, build_world
 
-_LAYOUT = (("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT"),
-           ("CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT"))
+_LAYOUT = (
+    ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT"),
+    ("CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT"),
+)
 PANEL = 256  # pixels, height of a row and size of the square panels
 
 
 def camera_mosaic(images: np.ndarray) -> np.ndarray:
     """``(6, H, W, 3)`` in :data:`CAMERA_NAMES` order -> ``(2H, 3W, 3)`` surround mosaic."""
-    rows = [np.concatenate([images[CAMERA_NAMES.index(n)] for n in row], axis=1)
-            for row in _LAYOUT]
+    rows = [np.concatenate([images[CAMERA_NAMES.index(n)] for n in row], axis=1) for row in _LAYOUT]
     return np.concatenate(rows, axis=0)
 
 
@@ -46,7 +47,7 @@ def lidar_top_view(points: np.ndarray, size: int = PANEL, resolution: float = 0.
     colour = np.where((z > 0.3)[:, None], high, ground).astype(np.uint8)
     order = np.argsort(z)  # higher points on top
     img[r[ok][order], c[ok][order]] = colour[order]
-    img[size // 2 - 2:size // 2 + 2, size // 2 - 1:size // 2 + 1] = (255, 40, 40)
+    img[size // 2 - 2 : size // 2 + 2, size // 2 - 1 : size // 2 + 1] = (255, 40, 40)
     return img
 
 
@@ -84,13 +85,19 @@ def contact_sheet(world, samples, hd, sd) -> np.ndarray:
     for s in samples:
         cams = camera_mosaic(s["images"])
         scale = PANEL / cams.shape[0]
-        cams = np.asarray(Image.fromarray(cams).resize(
-            (int(round(cams.shape[1] * scale)), PANEL), Image.Resampling.BILINEAR))
+        cams = np.asarray(
+            Image.fromarray(cams).resize(
+                (int(round(cams.shape[1] * scale)), PANEL), Image.Resampling.BILINEAR
+            )
+        )
         x, y, yaw = s["pose"]
         cams = _label(cams, f"{s['sample_id']}  x={x:.1f} y={y:.1f} yaw={np.degrees(yaw):.0f}")
-        panels = [cams, _label(lidar_top_view(s["lidar"]), f"LiDAR {len(s['lidar'])} pts"),
-                  _label(map_panel(hd, s["pose"]), "HD tile"),
-                  _label(map_panel(sd, s["pose"]), "SD tile")]
+        panels = [
+            cams,
+            _label(lidar_top_view(s["lidar"]), f"LiDAR {len(s['lidar'])} pts"),
+            _label(map_panel(hd, s["pose"]), "HD tile"),
+            _label(map_panel(sd, s["pose"]), "SD tile"),
+        ]
         sep = np.full((PANEL, 4, 3), 255, np.uint8)
         rows.append(np.concatenate([p for panel in panels for p in (panel, sep)][:-1], axis=1))
     return np.concatenate(rows, axis=0)

@@ -67,8 +67,10 @@ def _boxes(centre, tan, length, width):
     """Oriented rectangles (n,) from centres, unit tangents and sizes (metres)."""
     n = np.stack([-tan[:, 1], tan[:, 0]], axis=1)
     corners = [(1, 1), (1, -1), (-1, -1), (-1, 1), (1, 1)]
-    pts = np.stack([centre + a * tan * length[:, None] / 2 + b * n * width[:, None] / 2
-                    for a, b in corners], axis=1)  # (n, 5, 2)
+    pts = np.stack(
+        [centre + a * tan * length[:, None] / 2 + b * n * width[:, None] / 2 for a, b in corners],
+        axis=1,
+    )  # (n, 5, 2)
     return shapely.polygons(pts)
 
 
@@ -83,38 +85,71 @@ def place(roads, drivable, buildings, rng: np.random.Generator, cfg) -> Distract
         width = rng.uniform(1.7, 1.95, n)
         centre = _offset(roads, xy, tan, side, idx, width / 2 + rng.uniform(0.2, 0.5, n))
         van = rng.uniform(size=n) < 0.15
-        parts.append((_boxes(centre, tan, rng.uniform(4.0, 4.9, n) + van * 1.0, width),
-                      Thing.CAR, rng.uniform(1.4, 1.7, n) + van * 0.7, np.zeros(n),
-                      rng.integers(0, 256, n)))
+        parts.append(
+            (
+                _boxes(centre, tan, rng.uniform(4.0, 4.9, n) + van * 1.0, width),
+                Thing.CAR,
+                rng.uniform(1.4, 1.7, n) + van * 0.7,
+                np.zeros(n),
+                rng.integers(0, 256, n),
+            )
+        )
 
     xy, tan, side, idx = _along(roads, rng, cfg.trees_per_100m)
     n = len(xy)
     if n:
-        centre = _offset(roads, xy, tan, side, idx,
-                         cfg.sidewalk_width + rng.uniform(1.0, 3.0, n))
+        centre = _offset(roads, xy, tan, side, idx, cfg.sidewalk_width + rng.uniform(1.0, 3.0, n))
         radius = rng.uniform(1.5, 3.0, n)
         top = rng.uniform(6.0, 12.0, n)
         pts = shapely.points(centre)
-        parts.append((shapely.buffer(pts, radius), Thing.TREE, top, rng.uniform(2.0, 3.0, n),
-                      rng.integers(0, TRUNK_COLOUR, n)))
-        parts.append((shapely.buffer(pts, max(0.25, min_r)), Thing.TREE, top, np.zeros(n),
-                      np.full(n, TRUNK_COLOUR)))
+        parts.append(
+            (
+                shapely.buffer(pts, radius),
+                Thing.TREE,
+                top,
+                rng.uniform(2.0, 3.0, n),
+                rng.integers(0, TRUNK_COLOUR, n),
+            )
+        )
+        parts.append(
+            (
+                shapely.buffer(pts, max(0.25, min_r)),
+                Thing.TREE,
+                top,
+                np.zeros(n),
+                np.full(n, TRUNK_COLOUR),
+            )
+        )
 
     xy, tan, side, idx = _along(roads, rng, cfg.poles_per_100m)
     n = len(xy)
     if n:
         centre = _offset(roads, xy, tan, side, idx, rng.uniform(0.4, 0.7, n))
-        parts.append((shapely.buffer(shapely.points(centre), max(0.12, min_r)), Thing.POLE,
-                      rng.uniform(4.5, 8.0, n), np.zeros(n), np.zeros(n, np.int64)))
+        parts.append(
+            (
+                shapely.buffer(shapely.points(centre), max(0.12, min_r)),
+                Thing.POLE,
+                rng.uniform(4.5, 8.0, n),
+                np.zeros(n),
+                np.zeros(n, np.int64),
+            )
+        )
 
     xy, tan, side, idx = _along(roads, rng, cfg.pedestrians_per_100m)
     n = len(xy)
     if n:
-        centre = _offset(roads, xy, tan, side, idx,
-                         rng.uniform(0.8, max(1.0, cfg.sidewalk_width - 0.3), n))
-        parts.append((shapely.buffer(shapely.points(centre), max(0.28, min_r)),
-                      Thing.PEDESTRIAN, rng.uniform(1.5, 1.95, n), np.zeros(n),
-                      rng.integers(0, 256, n)))
+        centre = _offset(
+            roads, xy, tan, side, idx, rng.uniform(0.8, max(1.0, cfg.sidewalk_width - 0.3), n)
+        )
+        parts.append(
+            (
+                shapely.buffer(shapely.points(centre), max(0.28, min_r)),
+                Thing.PEDESTRIAN,
+                rng.uniform(1.5, 1.95, n),
+                np.zeros(n),
+                rng.integers(0, 256, n),
+            )
+        )
 
     if not parts:
         e = np.zeros(0)

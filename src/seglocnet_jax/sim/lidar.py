@@ -10,8 +10,17 @@ from seglocnet_jax.sim import classes as cl
 from seglocnet_jax.sim.render import GROUND, SKY, THING
 
 
-def returns(hits: dict, points_ego, sensor_pos, key, *, range_noise: float, dropout: float,
-            intensity_noise: float, max_range: float) -> dict:
+def returns(
+    hits: dict,
+    points_ego,
+    sensor_pos,
+    key,
+    *,
+    range_noise: float,
+    dropout: float,
+    intensity_noise: float,
+    max_range: float,
+) -> dict:
     """LiDAR returns of one sweep.
 
     Args:
@@ -31,9 +40,11 @@ def returns(hits: dict, points_ego, sensor_pos, key, *, range_noise: float, drop
     noisy = rng + range_noise * jax.random.normal(k_range, rng.shape)
     pts = sensor_pos + offset * (noisy / jnp.maximum(rng, 1e-6))[..., None]
 
-    refl = jnp.where(kind == THING,
-                     jnp.asarray(cl.THING_INTENSITY)[jnp.clip(cls, 0, len(cl.Thing) - 1)],
-                     jnp.asarray(cl.SURFACE_INTENSITY)[jnp.clip(cls, 0, len(cl.Surface) - 1)])
+    refl = jnp.where(
+        kind == THING,
+        jnp.asarray(cl.THING_INTENSITY)[jnp.clip(cls, 0, len(cl.Thing) - 1)],
+        jnp.asarray(cl.SURFACE_INTENSITY)[jnp.clip(cls, 0, len(cl.Surface) - 1)],
+    )
     intensity = refl * (1.0 - 0.3 * d / max_range)
     intensity = intensity + intensity_noise * jax.random.normal(k_int, d.shape)
     intensity = jnp.clip(intensity, 0.0, 1.0)
@@ -43,5 +54,8 @@ def returns(hits: dict, points_ego, sensor_pos, key, *, range_noise: float, drop
     valid = valid & ((kind == GROUND) | (kind == THING))
     out = jnp.concatenate([pts, intensity[..., None]], axis=-1).reshape(-1, 4)
     thing = jnp.where(kind == THING, cls, 0).reshape(-1)
-    return {"points": out.astype(jnp.float32), "valid": valid.reshape(-1),
-            "thing": thing.astype(jnp.int32)}
+    return {
+        "points": out.astype(jnp.float32),
+        "valid": valid.reshape(-1),
+        "thing": thing.astype(jnp.int32),
+    }

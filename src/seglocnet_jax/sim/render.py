@@ -22,16 +22,28 @@ TOP, X_FACE, Y_FACE = 0, 1, 2  # which face of a cell a ray entered (roof / east
 
 def hash01(a, b, c=0):
     """Deterministic integer hash of int32 arrays to float32 in [0, 1)."""
-    x = (jnp.asarray(a, jnp.uint32) * jnp.uint32(73856093)) ^ (
-        jnp.asarray(b, jnp.uint32) * jnp.uint32(19349663)) ^ (
-        jnp.asarray(c, jnp.uint32) * jnp.uint32(83492791))
+    x = (
+        (jnp.asarray(a, jnp.uint32) * jnp.uint32(73856093))
+        ^ (jnp.asarray(b, jnp.uint32) * jnp.uint32(19349663))
+        ^ (jnp.asarray(c, jnp.uint32) * jnp.uint32(83492791))
+    )
     x = (x ^ (x >> 13)) * jnp.uint32(1274126177)
     x = x ^ (x >> 16)
     return (x >> 8).astype(jnp.float32) / jnp.float32(1 << 24)
 
 
-def march(patch: dict, pose, col_pos, col_az, slopes, dists, steps, max_range: float,
-          resolution: float, refine: int = 2) -> dict:
+def march(
+    patch: dict,
+    pose,
+    col_pos,
+    col_az,
+    slopes,
+    dists,
+    steps,
+    max_range: float,
+    resolution: float,
+    refine: int = 2,
+) -> dict:
     """Ray hits of a fan of columns from one vehicle pose.
 
     Args:
@@ -82,8 +94,11 @@ def march(patch: dict, pose, col_pos, col_az, slopes, dists, steps, max_range: f
         r_m, c_m = cell(e0[:, None] + mid * ce[:, None], n0[:, None] + mid * cn[:, None])
         f_m = r_m * size + c_m
         z_m = z0[:, None] + slopes * mid
-        inside = ((patch["thing"].reshape(-1)[f_m] > 0) & (z_m <= patch["top"].reshape(-1)[f_m])
-                  & (z_m >= patch["bottom"].reshape(-1)[f_m]))
+        inside = (
+            (patch["thing"].reshape(-1)[f_m] > 0)
+            & (z_m <= patch["top"].reshape(-1)[f_m])
+            & (z_m >= patch["bottom"].reshape(-1)[f_m])
+        )
         hi, lo = jnp.where(inside, mid, hi), jnp.where(inside, lo, mid)
     d_thing = 0.5 * (lo + hi)
     d_ground = jnp.where(slopes < 0, z0[:, None] / jnp.maximum(-slopes, 1e-6), jnp.inf)
@@ -104,12 +119,22 @@ def march(patch: dict, pose, col_pos, col_az, slopes, dists, steps, max_range: f
     row = jnp.where(is_thing, row_t, row_g)
     col = jnp.where(is_thing, col_t, col_g)
     flat_hit = row * size + col
-    cls = jnp.where(is_thing, patch["thing"].reshape(-1)[flat_hit],
-                    patch["surface"].reshape(-1)[flat_hit])
+    cls = jnp.where(
+        is_thing, patch["thing"].reshape(-1)[flat_hit], patch["surface"].reshape(-1)[flat_hit]
+    )
     kind = jnp.where(is_thing, THING, jnp.where(is_ground, GROUND, SKY))
-    return {"kind": kind, "d": d, "z": z, "e": e, "n": n, "cls": cls,
-            "colour": patch["colour"].reshape(-1)[flat_hit], "face": face, "row": row,
-            "col": col}
+    return {
+        "kind": kind,
+        "d": d,
+        "z": z,
+        "e": e,
+        "n": n,
+        "cls": cls,
+        "colour": patch["colour"].reshape(-1)[flat_hit],
+        "face": face,
+        "row": row,
+        "col": col,
+    }
 
 
 def hit_points_ego(hits: dict, pose, col_pos, col_az, slopes):

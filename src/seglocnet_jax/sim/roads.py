@@ -39,8 +39,20 @@ ROAD_CLASSES: dict[str, tuple[int, float, int]] = {
 }
 # Classes without sidewalks or edge markings.
 NO_SIDEWALK = {"motorway", "trunk", "motorway_link", "trunk_link"}
-MARKED = {"motorway", "trunk", "primary", "secondary", "tertiary", "unclassified", "road",
-          "motorway_link", "trunk_link", "primary_link", "secondary_link", "tertiary_link"}
+MARKED = {
+    "motorway",
+    "trunk",
+    "primary",
+    "secondary",
+    "tertiary",
+    "unclassified",
+    "road",
+    "motorway_link",
+    "trunk_link",
+    "primary_link",
+    "secondary_link",
+    "tertiary_link",
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -171,12 +183,16 @@ def build_roads(city_roads, field: OffsetField, step: float = 2.0) -> list[Road]
 
 def drivable_area(roads: list[Road]):
     """Union of the roads' carriageways (shapely, world metres): the HD drivable area."""
-    polys = shapely.buffer(np.array([r.line for r in roads], dtype=object),
-                           np.array([r.width / 2 for r in roads]), cap_style="flat")
+    polys = shapely.buffer(
+        np.array([r.line for r in roads], dtype=object),
+        np.array([r.width / 2 for r in roads]),
+        cap_style="flat",
+    )
     ends = [shapely.points(r.centerline[[0, -1]]).tolist() for r in roads]
     # Round discs at the ends close the wedge gaps where roads meet at an angle.
-    discs = shapely.buffer(np.array([p for e in ends for p in e]),
-                           np.repeat([r.width / 2 for r in roads], 2))
+    discs = shapely.buffer(
+        np.array([p for e in ends for p in e]), np.repeat([r.width / 2 for r in roads], 2)
+    )
     return shapely.union_all(np.concatenate([polys, discs]))
 
 

@@ -16,8 +16,14 @@ import math
 import numpy as np
 
 # nuScenes channel order: clockwise from the front.
-CAMERA_NAMES = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT",
-                "CAM_FRONT_LEFT")
+CAMERA_NAMES = (
+    "CAM_FRONT",
+    "CAM_FRONT_RIGHT",
+    "CAM_BACK_RIGHT",
+    "CAM_BACK",
+    "CAM_BACK_LEFT",
+    "CAM_FRONT_LEFT",
+)
 # (yaw deg CCW from forward, horizontal FOV deg, x m, y m) per camera, nuScenes-like placement.
 _RIG = (
     (0.0, 70.0, 1.70, 0.00),
@@ -71,8 +77,10 @@ class SensorConfig:
 
     def __post_init__(self):
         if self.image_height < 8 or self.image_width < 8:
-            raise ValueError(f"SensorConfig image size {self.image_height}x{self.image_width}: "
-                             "expected at least 8x8")
+            raise ValueError(
+                f"SensorConfig image size {self.image_height}x{self.image_width}: "
+                "expected at least 8x8"
+            )
         if not 0 < self.near_step <= self.far_step:
             raise ValueError("SensorConfig.near_step/far_step: expected 0 < near <= far")
         if self.chunk < 1 or self.lidar_beams < 1 or self.lidar_azimuths < 1:
@@ -95,8 +103,9 @@ def intrinsics(cfg: SensorConfig) -> np.ndarray:
     out = []
     for _, fov, _, _ in _RIG:
         f = (cfg.image_width / 2) / math.tan(math.radians(fov) / 2)
-        out.append([[f, 0, (cfg.image_width - 1) / 2], [0, f, (cfg.image_height - 1) / 2],
-                    [0, 0, 1]])
+        out.append(
+            [[f, 0, (cfg.image_width - 1) / 2], [0, f, (cfg.image_height - 1) / 2], [0, 0, 1]]
+        )
     return np.asarray(out, np.float32)
 
 
@@ -131,8 +140,11 @@ def camera_columns(cfg: SensorConfig):
         norm = np.sqrt(1 + a**2)  # horizontal length per unit z
         slope.append(-b[None, :] / norm[:, None])  # (W, H)
         pos.append(np.broadcast_to(t[i, :3, 3], (cfg.image_width, 3)))
-    return (np.concatenate(pos).astype(np.float32), np.concatenate(az).astype(np.float32),
-            np.concatenate(slope).astype(np.float32))
+    return (
+        np.concatenate(pos).astype(np.float32),
+        np.concatenate(az).astype(np.float32),
+        np.concatenate(slope).astype(np.float32),
+    )
 
 
 def lidar_columns(cfg: SensorConfig):

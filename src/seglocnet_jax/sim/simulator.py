@@ -48,14 +48,24 @@ class Simulator:
 
     def _frame(self, patch, pose, cell0, light, key):
         cfg, res = self.cfg, self.world.grid.resolution
-        patch = {k: v.astype(jnp.int32 if k in ("surface", "thing", "colour") else jnp.float32)
-                 for k, v in patch.items()}
+        patch = {
+            k: v.astype(jnp.int32 if k in ("surface", "thing", "colour") else jnp.float32)
+            for k, v in patch.items()
+        }
         k_cam, k_lidar = jax.random.split(key)
         pos, az, slopes = self._cam
-        hits = rn.march(patch, pose, pos, az, slopes, self._dists, self._steps,
-                        cfg.max_range, res)
-        rgb = cam.shade(hits, slopes, light, self._palette, cell0, res, k_cam, cfg.pixel_noise,
-                        self.world.cfg.level_height)  # (N*W, H, 3)
+        hits = rn.march(patch, pose, pos, az, slopes, self._dists, self._steps, cfg.max_range, res)
+        rgb = cam.shade(
+            hits,
+            slopes,
+            light,
+            self._palette,
+            cell0,
+            res,
+            k_cam,
+            cfg.pixel_noise,
+            self.world.cfg.level_height,
+        )  # (N*W, H, 3)
         n, h, w = len(sn.CAMERA_NAMES), cfg.image_height, cfg.image_width
         images = cam.to_uint8(rgb).reshape(n, w, h, 3).transpose(0, 2, 1, 3)  # (N, H, W, 3)
         cam_points = rn.hit_points_ego(hits, pose, pos, az, slopes)
@@ -63,14 +73,28 @@ class Simulator:
         cam_kind = hits["kind"].reshape(n, w, h).transpose(0, 2, 1)
 
         lpos, laz, lslopes = self._lidar
-        lhits = rn.march(patch, pose, lpos, laz, lslopes, self._dists, self._steps,
-                         cfg.max_range, res)
+        lhits = rn.march(
+            patch, pose, lpos, laz, lslopes, self._dists, self._steps, cfg.max_range, res
+        )
         lpts = rn.hit_points_ego(lhits, pose, lpos, laz, lslopes)  # (A, beams, 3)
-        lid = ld.returns(lhits, lpts, lpos[0], k_lidar, range_noise=cfg.range_noise,
-                         dropout=cfg.dropout, intensity_noise=cfg.intensity_noise,
-                         max_range=cfg.max_range)
-        return {"images": images, "cam_points": cam_points, "cam_kind": cam_kind,
-                "lidar": lid["points"], "lidar_valid": lid["valid"], "lidar_thing": lid["thing"]}
+        lid = ld.returns(
+            lhits,
+            lpts,
+            lpos[0],
+            k_lidar,
+            range_noise=cfg.range_noise,
+            dropout=cfg.dropout,
+            intensity_noise=cfg.intensity_noise,
+            max_range=cfg.max_range,
+        )
+        return {
+            "images": images,
+            "cam_points": cam_points,
+            "cam_kind": cam_kind,
+            "lidar": lid["points"],
+            "lidar_valid": lid["valid"],
+            "lidar_thing": lid["thing"],
+        }
 
     # ------------------------------------------------------------------ host side
 
@@ -82,13 +106,15 @@ class Simulator:
         r0, r1 = max(row0, 0), min(row0 + p, g.height)
         c0, c1 = max(col0, 0), min(col0 + p, g.width)
         if r0 >= r1 or c0 >= c1:
-            raise ValueError(f"world {self.world.name!r}: pose {tuple(pose)} is outside the world "
-                             f"raster (bounds {g.bounds})")
+            raise ValueError(
+                f"world {self.world.name!r}: pose {tuple(pose)} is outside the world "
+                f"raster (bounds {g.bounds})"
+            )
         layers = {}
         for name in _LAYERS:
             src = getattr(self.world, name)
             out = np.zeros((p, p), src.dtype)
-            out[r0 - row0:r1 - row0, c0 - col0:c1 - col0] = src[r0:r1, c0:c1]
+            out[r0 - row0 : r1 - row0, c0 - col0 : c1 - col0] = src[r0:r1, c0:c1]
             layers[name] = out
         x0, y0 = g.pixel_to_world(row0, col0)  # patch north-west corner, world metres
         local = np.array([pose[0] - x0, pose[1] - y0, pose[2]], np.float32)
@@ -109,18 +135,22 @@ class Simulator:
         padded = np.concatenate([poses, np.repeat(poses[-1:], (-b) % chunk, axis=0)])
         outs = []
         for start in range(0, len(padded), chunk):
-            frames = [self._patch(p) for p in padded[start:start + chunk]]
+            frames = [self._patch(p) for p in padded[start : start + chunk]]
             lights = []
             for i in range(start, start + chunk):
                 rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, i, 0x5E])
                 lights.append(cam.draw_lighting(rng, self.cfg.night_prob, self.cfg.dusk_prob))
             base = jax.random.key(np.uint32(int(seed) & 0xFFFFFFFF))
             keys = jax.vmap(lambda i, base=base: jax.random.fold_in(base, i))(
-                jnp.arange(start, start + chunk))
+                jnp.arange(start, start + chunk)
+            )
             out = self._render(
                 {k: np.stack([f[0][k] for f in frames]) for k in _LAYERS},
-                np.stack([f[1] for f in frames]), np.stack([f[2] for f in frames]),
-                {k: np.stack([lt[k] for lt in lights]) for k in cam.LIGHT_KEYS}, keys)
+                np.stack([f[1] for f in frames]),
+                np.stack([f[2] for f in frames]),
+                {k: np.stack([lt[k] for lt in lights]) for k in cam.LIGHT_KEYS},
+                keys,
+            )
             outs.append(jax.device_get(out))
         return {k: np.concatenate([o[k] for o in outs])[:b] for k in outs[0]}
 

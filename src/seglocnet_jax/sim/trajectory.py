@@ -56,19 +56,35 @@ def build_graph(roads) -> RoadGraph:
     for road, k in zip(roads, keys, strict=True):
         cut = [i for i in range(len(k)) if i in (0, len(k) - 1) or count[tuple(k[i])] > 1]
         for a, b in zip(cut[:-1], cut[1:], strict=True):
-            pts = road.centerline[a:b + 1]
+            pts = road.centerline[a : b + 1]
             u = node_id.setdefault(tuple(k[a]), len(node_id))
             v = node_id.setdefault(tuple(k[b]), len(node_id))
             seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
             if seg.sum() < 0.5:
                 continue
             if road.oneway >= 0:
-                arcs.append(Arc(pts, np.concatenate([[0.0], np.cumsum(seg)]), u, v, edge,
-                                _lane_offsets(road, False)))
+                arcs.append(
+                    Arc(
+                        pts,
+                        np.concatenate([[0.0], np.cumsum(seg)]),
+                        u,
+                        v,
+                        edge,
+                        _lane_offsets(road, False),
+                    )
+                )
             if road.oneway <= 0:
                 rev = pts[::-1]
-                arcs.append(Arc(rev, np.concatenate([[0.0], np.cumsum(seg[::-1])]), v, u,
-                                edge, _lane_offsets(road, True)))
+                arcs.append(
+                    Arc(
+                        rev,
+                        np.concatenate([[0.0], np.cumsum(seg[::-1])]),
+                        v,
+                        u,
+                        edge,
+                        _lane_offsets(road, True),
+                    )
+                )
             edge += 1
     out: dict[int, list[int]] = {}
     for i, arc in enumerate(arcs):
@@ -102,9 +118,17 @@ def _inside(poses: np.ndarray, region) -> np.ndarray:
     return shapely.contains_xy(region, poses[:, 0], poses[:, 1])
 
 
-def drive(world, rng: np.random.Generator, num_frames: int, spacing_m: float = 4.0, *,
-          route_frames: tuple[int, int] = (10, 60), lateral_noise: float = 0.15,
-          yaw_noise_deg: float = 1.0, region=None) -> np.ndarray:
+def drive(
+    world,
+    rng: np.random.Generator,
+    num_frames: int,
+    spacing_m: float = 4.0,
+    *,
+    route_frames: tuple[int, int] = (10, 60),
+    lateral_noise: float = 0.15,
+    yaw_noise_deg: float = 1.0,
+    region=None,
+) -> np.ndarray:
     """Poses ``(num_frames, 3)`` of many random routes on the world's road network.
 
     Each route starts at a uniformly random point of the network, keeps a random lane, takes a
@@ -161,8 +185,15 @@ def drive(world, rng: np.random.Generator, num_frames: int, spacing_m: float = 4
     return np.concatenate(out)[:num_frames]
 
 
-def sample_poses(world, rng: np.random.Generator, num: int, *, region=None,
-                 lateral_noise: float = 0.15, yaw_noise_deg: float = 1.0) -> np.ndarray:
+def sample_poses(
+    world,
+    rng: np.random.Generator,
+    num: int,
+    *,
+    region=None,
+    lateral_noise: float = 0.15,
+    yaw_noise_deg: float = 1.0,
+) -> np.ndarray:
     """Independent poses ``(num, 3)`` uniformly over the lanes of the network (inside
     ``region`` if given, by rejection)."""
     graph = graph_of(world)

@@ -146,7 +146,8 @@ def _world_buildings(city_buildings, drivable, rng, cfg: WorldConfig):
             w, l_ = rng.uniform(8, 25, size=2)
             box = shapely.affinity.rotate(
                 shapely.box(c[0] - w / 2, c[1] - l_ / 2, c[0] + w / 2, c[1] + l_ / 2),
-                rng.uniform(0, 180))
+                rng.uniform(0, 180),
+            )
             if occupied.intersects(box):
                 continue
             polys.append(box)
@@ -160,8 +161,9 @@ def _burn(grid: RasterGrid, shapes, dtype, fill=0, all_touched=False) -> np.ndar
     shapes = [(g, v) for g, v in shapes if g is not None and not g.is_empty]
     out = np.full((grid.height, grid.width), fill, dtype)
     if shapes:
-        rasterio.features.rasterize(shapes, out=out, transform=Affine(*grid.affine()),
-                                    all_touched=all_touched)
+        rasterio.features.rasterize(
+            shapes, out=out, transform=Affine(*grid.affine()), all_touched=all_touched
+        )
     return out
 
 
@@ -182,8 +184,9 @@ def build_world_from_city(name: str, city, cfg: WorldConfig, seed: int) -> World
 
     sidewalk = rd.sidewalk_area(roads, cfg.sidewalk_width)
     marks = [ln for r in roads for ln in rd.marking_lines(r, rng)]
-    surface = _burn(grid, [(sidewalk, int(Surface.SIDEWALK)), (drivable, int(Surface.ROAD))],
-                    np.uint8)
+    surface = _burn(
+        grid, [(sidewalk, int(Surface.SIDEWALK)), (drivable, int(Surface.ROAD))], np.uint8
+    )
     if marks:  # paint stays on the carriageway
         paint = shapely.buffer(np.array(marks, dtype=object), 0.08, cap_style="flat")
         painted = _burn(grid, [(g, 1) for g in paint], np.uint8, all_touched=True) > 0
@@ -194,9 +197,13 @@ def build_world_from_city(name: str, city, cfg: WorldConfig, seed: int) -> World
     steps.update()
     # One id raster: buildings 1..Nb, distractor parts after them.
     n_b = len(polys)
-    ids = _burn(grid, [(p, i + 1) for i, p in enumerate(polys)]
-                + [(g, n_b + 1 + j) for j, g in enumerate(objs.geoms)], np.int32,
-                all_touched=False)
+    ids = _burn(
+        grid,
+        [(p, i + 1) for i, p in enumerate(polys)]
+        + [(g, n_b + 1 + j) for j, g in enumerate(objs.geoms)],
+        np.int32,
+        all_touched=False,
+    )
     steps.update()
     palette_ids = rng.integers(0, 256, size=n_b)
     lut_thing = np.concatenate([[0], np.full(n_b, Thing.BUILDING), objs.thing]).astype(np.uint8)
@@ -211,9 +218,21 @@ def build_world_from_city(name: str, city, cfg: WorldConfig, seed: int) -> World
     thing[low], top[low] = Thing.NONE, 0
     bottom[over & ~low] = cfg.passage_clearance
     world = World(
-        name=name, grid=grid, surface=surface, thing=thing, top=top,
-        bottom=bottom, colour=lut_colour[ids], drivable=drivable, roads=roads,
-        buildings=polys, building_heights=heights, osm_buildings_kept=kept, cfg=cfg, seed=seed)
+        name=name,
+        grid=grid,
+        surface=surface,
+        thing=thing,
+        top=top,
+        bottom=bottom,
+        colour=lut_colour[ids],
+        drivable=drivable,
+        roads=roads,
+        buildings=polys,
+        building_heights=heights,
+        osm_buildings_kept=kept,
+        cfg=cfg,
+        seed=seed,
+    )
     steps.update()
     steps.close()
     return world

@@ -70,8 +70,11 @@ class Checkpointer:
         """Saves to ``last``; with validation ``metrics`` also offers it to ``best``."""
         if step not in self.last.all_steps():
             self.last.save(step, args=_args(state, data_state), force=True)
-        if (metrics is not None and self.cfg.best_metric in metrics
-                and step not in self.best.all_steps()):
+        if (
+            metrics is not None
+            and self.cfg.best_metric in metrics
+            and step not in self.best.all_steps()
+        ):
             self.best.save(step, args=_args(state, data_state), metrics=metrics, force=True)
         self.last.wait_until_finished()
         self.best.wait_until_finished()
@@ -85,7 +88,9 @@ class Checkpointer:
             except Exception as err:  # noqa: BLE001 - any failure means this one is unusable
                 log.warning(
                     "checkpoint %s is corrupt or incomplete (%s: %s); trying an older one",
-                    os.path.join(self.last_dir, str(step)), type(err).__name__, err,
+                    os.path.join(self.last_dir, str(step)),
+                    type(err).__name__,
+                    err,
                 )
                 print(
                     f"WARNING: checkpoint {os.path.join(self.last_dir, str(step))} could not be "
@@ -107,8 +112,12 @@ def restore_params(path: str, target_state):
     path = os.path.abspath(path)
     if not os.path.exists(path):
         raise CheckpointError(f"checkpoint={path!r} does not exist")
-    candidates = [path, os.path.join(path, "best"), os.path.join(path, "checkpoints", "best"),
-                  os.path.join(path, "checkpoints", "last")]
+    candidates = [
+        path,
+        os.path.join(path, "best"),
+        os.path.join(path, "checkpoints", "best"),
+        os.path.join(path, "checkpoints", "last"),
+    ]
     for cand in candidates:
         if os.path.isdir(cand) and any(d.isdigit() for d in os.listdir(cand)):
             mngr = ocp.CheckpointManager(cand, options=ocp.CheckpointManagerOptions(create=False))

@@ -52,20 +52,39 @@ def make_bev_fn(cfg: ExperimentConfig, params, mesh):
     return bev_fn
 
 
-def evaluate_splits(cfg: ExperimentConfig, dataset_dir: str, bev_fn, workdir: str,
-                    splits, *, max_batches=None, num_figures: int = 0, tag: str = "") -> dict:
+def evaluate_splits(
+    cfg: ExperimentConfig,
+    dataset_dir: str,
+    bev_fn,
+    workdir: str,
+    splits,
+    *,
+    max_batches=None,
+    num_figures: int = 0,
+    tag: str = "",
+) -> dict:
     """Metrics per split (paper keys); figures under ``<workdir>/figures/<split>``."""
     results = {}
     for split in splits:
         ld = loader_lib.make_loader(
-            dataset_dir, split, cfg.variant.name, cfg.eval.batch_size, cfg.train.seed,
-            train=False, config=cfg.loader,
+            dataset_dir,
+            split,
+            cfg.variant.name,
+            cfg.eval.batch_size,
+            cfg.train.seed,
+            train=False,
+            config=cfg.loader,
         )
         n = ld.batches_per_epoch if max_batches is None else min(max_batches, ld.batches_per_epoch)
         results[split] = evaluation.evaluate_loader(
-            iter(ld), bev_fn, cfg.solver, num_batches=n, desc=f"eval {split}{tag}",
+            iter(ld),
+            bev_fn,
+            cfg.solver,
+            num_batches=n,
+            desc=f"eval {split}{tag}",
             figure_dir=os.path.join(workdir, "figures", split) if num_figures else None,
-            num_figures=num_figures, channels=cfg.variant.channels,
+            num_figures=num_figures,
+            channels=cfg.variant.channels,
         )
     return results
 
@@ -73,8 +92,13 @@ def evaluate_splits(cfg: ExperimentConfig, dataset_dir: str, bev_fn, workdir: st
 def write_results(workdir: str, cfg: ExperimentConfig, results: dict, extra: dict) -> str:
     """``<workdir>/results.json`` (atomic) and the printed paper-style table."""
     path = os.path.join(workdir, "results.json")
-    payload = {"experiment": cfg.name, "variant": cfg.variant.name,
-               "bev_source": cfg.eval.bev_source, "splits": results, **extra}
+    payload = {
+        "experiment": cfg.name,
+        "variant": cfg.variant.name,
+        "bev_source": cfg.eval.bev_source,
+        "splits": results,
+        **extra,
+    }
     tmp = path + ".tmp"
     with open(tmp, "w") as f:
         json.dump(payload, f, indent=2)
@@ -83,8 +107,10 @@ def write_results(workdir: str, cfg: ExperimentConfig, results: dict, extra: dic
 
 
 def format_table(cfg: ExperimentConfig, results: dict) -> str:
-    rows = [(f"{cfg.name} [{cfg.variant.name}, {cfg.eval.bev_source}] {split}", res)
-            for split, res in results.items()]
+    rows = [
+        (f"{cfg.name} [{cfg.variant.name}, {cfg.eval.bev_source}] {split}", res)
+        for split, res in results.items()
+    ]
     return metrics.markdown_table(rows)
 
 
@@ -95,8 +121,13 @@ def train_and_evaluate(cfg: ExperimentConfig, workdir: str) -> dict:
     dataset_dir = prepare_dataset(cfg)
     mesh = step_lib.make_mesh(cfg.train.num_devices)
     train_loader = loader_lib.make_loader(
-        dataset_dir, "train", cfg.variant.name, cfg.train.batch_size, cfg.train.seed,
-        train=True, config=cfg.loader,
+        dataset_dir,
+        "train",
+        cfg.variant.name,
+        cfg.train.batch_size,
+        cfg.train.seed,
+        train=True,
+        config=cfg.loader,
     )
     example = next(iter(train_loader))
     state, optimizer = init_state(cfg, step_lib.device_batch(example, mesh), mesh)
@@ -108,8 +139,10 @@ def train_and_evaluate(cfg: ExperimentConfig, workdir: str) -> dict:
         data_iter.set_state(data_state)
         _progress(f"resumed from {ckpt.last_dir}/{step0}")
     state = step_lib.replicate(state, mesh)
+
     def loss_fn(params, batch, rng):
         return model_api.loss_fn(params, batch, cfg.model, rng)
+
     train_step = step_lib.make_train_step(loss_fn, optimizer, mesh)
     logger = MetricsLogger(workdir, enabled=jax.process_index() == 0)
 
@@ -132,34 +165,64 @@ def train_and_evaluate(cfg: ExperimentConfig, workdir: str) -> dict:
             logger.write(step, "train", scalars)
         val = None
         if cfg.train.eval_every and step % cfg.train.eval_every == 0 and step < cfg.train.num_steps:
-            val = evaluate_splits(cfg, dataset_dir, make_bev_fn(cfg, state.params, mesh), workdir,
-                                  ["val"], max_batches=cfg.train.val_batches, tag=f" @{step}")
+            val = evaluate_splits(
+                cfg,
+                dataset_dir,
+                make_bev_fn(cfg, state.params, mesh),
+                workdir,
+                ["val"],
+                max_batches=cfg.train.val_batches,
+                tag=f" @{step}",
+            )
             logger.write(step, "val", val["val"])
             val = val["val"]
         if step % cfg.train.checkpoint.every_steps == 0 or val is not None:
             ckpt.save(step, jax.device_get(state), data_iter.get_state(), metrics=val)
     bar.close()
-    val = evaluate_splits(cfg, dataset_dir, make_bev_fn(cfg, state.params, mesh), workdir,
-                          ["val"], max_batches=cfg.train.val_batches, tag=" final")["val"]
+    val = evaluate_splits(
+        cfg,
+        dataset_dir,
+        make_bev_fn(cfg, state.params, mesh),
+        workdir,
+        ["val"],
+        max_batches=cfg.train.val_batches,
+        tag=" final",
+    )["val"]
     logger.write(step, "val", val)
     ckpt.save(step, jax.device_get(state), data_iter.get_state(), metrics=val)
     ckpt.close()
     train_time = time.time() - t_start
     # The test split is evaluated with the best checkpoint by validation (as `evaluate` does).
     best, best_step = ckpt_lib.restore_params(ckpt.best_dir, jax.device_get(state))
-    _progress(f"evaluating the best checkpoint by validation {cfg.train.checkpoint.best_metric}: "
-              f"step {best_step}")
+    _progress(
+        f"evaluating the best checkpoint by validation {cfg.train.checkpoint.best_metric}: "
+        f"step {best_step}"
+    )
     params = step_lib.replicate(best.params, mesh)
-    results = evaluate_splits(cfg, dataset_dir, make_bev_fn(cfg, params, mesh), workdir,
-                              cfg.eval.splits, max_batches=cfg.eval.max_batches,
-                              num_figures=cfg.eval.num_figures)
+    results = evaluate_splits(
+        cfg,
+        dataset_dir,
+        make_bev_fn(cfg, params, mesh),
+        workdir,
+        cfg.eval.splits,
+        max_batches=cfg.eval.max_batches,
+        num_figures=cfg.eval.num_figures,
+    )
     for split, res in results.items():
         logger.write(step, split, res)
     logger.close()
-    write_results(workdir, cfg, results, {"steps": step, "best_step": best_step,
-                                          "wall_time_s": time.time() - t_start,
-                                          "train_time_s": train_time,
-                                          "config": dataclasses.asdict(cfg)})
+    write_results(
+        workdir,
+        cfg,
+        results,
+        {
+            "steps": step,
+            "best_step": best_step,
+            "wall_time_s": time.time() - t_start,
+            "train_time_s": train_time,
+            "config": dataclasses.asdict(cfg),
+        },
+    )
     table = format_table(cfg, results)
     print(table, flush=True)
     return results
@@ -178,17 +241,29 @@ def run_evaluation(cfg: ExperimentConfig, checkpoint: str | None, workdir: str) 
     mesh = step_lib.make_mesh(cfg.train.num_devices)
     params, step = None, None
     if cfg.eval.bev_source == "model":
-        ld = loader_lib.make_loader(dataset_dir, cfg.eval.splits[0], cfg.variant.name,
-                                    cfg.eval.batch_size, cfg.train.seed, train=False,
-                                    config=cfg.loader)
+        ld = loader_lib.make_loader(
+            dataset_dir,
+            cfg.eval.splits[0],
+            cfg.variant.name,
+            cfg.eval.batch_size,
+            cfg.train.seed,
+            train=False,
+            config=cfg.loader,
+        )
         example = step_lib.device_batch(next(iter(ld)), mesh)
         target, _ = init_state(cfg, example, mesh)
         state, step = ckpt_lib.restore_params(checkpoint, jax.device_get(target))
         params = step_lib.replicate(state.params, mesh)
         _progress(f"restored {checkpoint} (step {step})")
-    results = evaluate_splits(cfg, dataset_dir, make_bev_fn(cfg, params, mesh), workdir,
-                              cfg.eval.splits, max_batches=cfg.eval.max_batches,
-                              num_figures=cfg.eval.num_figures)
+    results = evaluate_splits(
+        cfg,
+        dataset_dir,
+        make_bev_fn(cfg, params, mesh),
+        workdir,
+        cfg.eval.splits,
+        max_batches=cfg.eval.max_batches,
+        num_figures=cfg.eval.num_figures,
+    )
     path = write_results(workdir, cfg, results, {"checkpoint": checkpoint, "step": step})
     print(format_table(cfg, results), flush=True)
     _progress(f"wrote {path} and figures under {os.path.join(workdir, 'figures')}")
