@@ -17,6 +17,7 @@ def main(cfg: DictConfig) -> None:
     from seglocnet_jax.experiment import build_experiment
     from seglocnet_jax.training.loop import run_evaluation
 
+    hydra_app.quiet_library_logs()
     hydra_app.maybe_initialize_distributed()
     tree = hydra_app.to_tree(cfg)
     checkpoint = tree.pop("checkpoint", None)

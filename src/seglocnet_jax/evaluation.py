@@ -67,8 +67,10 @@ def evaluate_loader(
     channels=("road", "building"),
 ) -> dict:
     """Localizes every valid sample of ``batches`` and returns the metric summary (paper keys
-    plus ``count``). Writes ``num_figures`` figures to ``figure_dir``."""
+    plus ``count``, and ``prior``: the position recalls / APE of the prior alone, i.e. of
+    answering the tile centre). Writes ``num_figures`` figures to ``figure_dir``."""
     acc = metrics.MetricAccumulator()
+    prior_err = []
     figures = 0
     for i, batch in enumerate(tqdm(batches, total=num_batches, desc=desc, unit="batch")):
         if i >= num_batches:
@@ -78,11 +80,16 @@ def evaluate_loader(
         pose_tile = np.asarray(out["pose_tile"], np.float64)  # (B, 3)
         pred_world = solver.tile_pose_to_world(pose_tile, batch["tile_center"])
         valid = np.asarray(batch.get("valid", np.ones(len(pose_tile), bool)), bool)
-        acc.update(pred_world[valid], np.asarray(batch["pose"], np.float64)[valid])
+        gt_world = np.asarray(batch["pose"], np.float64)[valid]
+        acc.update(pred_world[valid], gt_world)
+        centre = np.asarray(batch["tile_center"], np.float64)[valid]
+        prior_err.append(np.hypot(*(centre - gt_world[:, :2]).T))
         for j in np.flatnonzero(valid)[: max(num_figures - figures, 0) if figure_dir else 0]:
             _figure(figure_dir, batch, j, logits, probs, pose_tile, solver_cfg, channels)
             figures += 1
-    return acc.result()
+    result = acc.result()
+    result["prior"] = metrics.position_summary(np.concatenate(prior_err) if prior_err else [])
+    return result
 
 
 def _figure(figure_dir, batch, j, logits, probs, pose_tile, solver_cfg, channels):

@@ -26,6 +26,8 @@ class TrainConfig:
     num_devices: devices in the mesh (None: all).
     log_every, eval_every: periods in steps (eval_every 0: validate only at the end).
     val_batches: validation batches per periodic evaluation (None: the whole split).
+    init_from: checkpoint (run directory or step directory) whose parameters start a new run
+      (fine-tuning, e.g. Argoverse from nuScenes); ignored when the run resumes its own.
     """
 
     seed: int = 0
@@ -35,6 +37,7 @@ class TrainConfig:
     log_every: int = 20
     eval_every: int = 500
     val_batches: int | None = 20
+    init_from: str | None = None
     optim: dict = dataclasses.field(default_factory=dict)
     checkpoint: CheckpointConfig = CheckpointConfig()
 
@@ -65,13 +68,16 @@ class ExperimentConfig:
     solver: solver.SolverConfig
     train: TrainConfig
     eval: EvalConfig
+    # Real data (conf/dataset/*.yaml: source, reader, convert), None for the simulator. Validated
+    # by build_experiment; converted on first use by prepare_dataset.
+    dataset: dict | None = None
 
 
 def build_experiment(tree: dict) -> ExperimentConfig:
     """``tree``: the resolved Hydra config as a dict (keys: name, data, map, loader, model,
-    solver, train, eval)."""
+    solver, train, eval, and for real data dataset)."""
     tree = dict(tree)
-    known = {"name", "data", "map", "loader", "model", "solver", "train", "eval"}
+    known = {"name", "data", "map", "loader", "model", "solver", "train", "eval", "dataset"}
     unknown = sorted(set(tree) - known)
     if unknown:
         raise ConfigError(f"unknown top-level config key(s) {unknown}; expected {sorted(known)}")
@@ -81,6 +87,11 @@ def build_experiment(tree: dict) -> ExperimentConfig:
         {k: map_section[k] for k in ("kind", "road_width", "channels") if k in map_section},
         "map",
     )
+    dataset = tree.get("dataset")
+    if dataset is not None:
+        from seglocnet_jax.data import real_convert
+
+        real_convert.parse_tree(dataset)  # unknown keys and bad values fail here, not later
     data = from_dict(prepare_lib.PrepareConfig, tree.get("data"), "data")
     # The run's map variant is rasterized with the sensors (never re-simulated for a new one).
     data = dataclasses.replace(data, map_variants=(dataclasses.asdict(variant),))
@@ -93,18 +104,53 @@ def build_experiment(tree: dict) -> ExperimentConfig:
         solver=from_dict(solver.SolverConfig, tree.get("solver"), "solver"),
         train=from_dict(TrainConfig, tree.get("train"), "train"),
         eval=from_dict(EvalConfig, tree.get("eval"), "eval"),
+        dataset=dataset,
     )
 
 
 def prepare_dataset(cfg: ExperimentConfig) -> str:
-    """Prepares the experiment's data if its shards are missing (progress shown); returns the
-    dataset directory. Real-data experiments need their converted directory to exist."""
-    source = getattr(cfg.data, "source", "sim")
-    if source != "sim":
-        path = os.path.join(cfg.data.root, cfg.data.name)
-        if not os.path.isdir(path):
-            raise FileNotFoundError(
-                f"data directory {path!r} for experiment {cfg.name!r} does not exist: convert the "
-                f"dataset first (README, 'Using real data')"
-            )
+    """Prepares the experiment's data if its shards or map variant are missing (progress
+    shown); returns the dataset directory. Real data is converted from
+    ``dataset.reader.dataroot`` on first use; a converted directory is used as it is."""
+    if cfg.dataset is not None:
+        return _prepare_real(cfg)
     return prepare_lib.prepare(cfg.data)
+
+
+def _prepare_real(cfg: ExperimentConfig) -> str:
+    from seglocnet_jax.data import real_convert
+
+    reader_cls, reader_cfg, convert_cfg = real_convert.parse_tree(cfg.dataset)
+    dataset_dir = os.path.join(convert_cfg.root, convert_cfg.name)
+    if _converted(dataset_dir, cfg.variant):
+        return dataset_dir
+    dataroot = reader_cfg.dataroot
+    if not os.path.isdir(dataroot):
+        raise FileNotFoundError(
+            f"experiment {cfg.name!r}: data directory {dataroot!r} (dataset.reader.dataroot) "
+            f"does not exist and {dataset_dir!r} holds no converted dataset with map variant "
+            f"{cfg.variant.name!r}. Put the {cfg.dataset['source']} data there or pass "
+            "dataset.reader.dataroot=PATH; the first run converts it (README, 'Using real data')"
+        )
+    dataset_dir, _ = real_convert.convert_for_training(
+        reader_cls(reader_cfg), convert_cfg, cfg.variant
+    )
+    return dataset_dir
+
+
+def _converted(dataset_dir: str, variant: VariantConfig) -> bool:
+    """Whether ``dataset_dir`` holds a complete conversion with ``variant`` for every city."""
+    from seglocnet_jax.data import manifest as mf
+    from seglocnet_jax.data.variants import variant_path
+
+    if not os.path.isfile(mf.manifest_path(dataset_dir)):
+        return False
+    man = mf.read_manifest(dataset_dir)
+    splits = man["splits"].values()
+    shards_ok = all(
+        os.path.exists(os.path.join(dataset_dir, s["file"])) for sp in splits for s in sp["shards"]
+    )
+    if not man.get("complete") or not shards_ok or variant.name not in man["map_variants"]:
+        return False
+    cities = {c for sp in splits for c in sp["cities"]}
+    return all(os.path.exists(variant_path(dataset_dir, variant.name, c)) for c in cities)

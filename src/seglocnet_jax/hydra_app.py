@@ -36,6 +36,15 @@ def to_tree(cfg: DictConfig) -> dict:
     return tree
 
 
+def quiet_library_logs() -> None:
+    """Hydra sets the root logger to INFO; orbax (absl) and tensorboardX then flood the console
+    with per-save chatter. Our own progress goes through tqdm and ``[seglocnet]`` lines."""
+    import logging
+
+    for name in ("absl", "tensorboardX", "orbax", "jax._src"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+
+
 def maybe_initialize_distributed() -> None:
     """Multi-host: ``jax.distributed.initialize()`` when the environment asks for it (a
     coordinator address, or a cluster JAX auto-detects such as SLURM / TPU pods)."""

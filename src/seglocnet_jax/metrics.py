@@ -57,6 +57,17 @@ def recall(errors, threshold: float) -> float:
     return float(np.mean(errors < threshold) * 100.0)
 
 
+def position_summary(pos_err, cfg: MetricsConfig = MetricsConfig()) -> dict:
+    """Position recalls and APE of a method without a heading (e.g. the prior alone); the
+    orientation keys are None (a table shows them as "–")."""
+    pos_err = np.asarray(pos_err, np.float64)
+    out = {position_key(t): recall(pos_err, t) for t in cfg.position_thresholds}
+    out.update({yaw_key(t): None for t in cfg.yaw_thresholds})
+    out.update(APE=float(np.mean(pos_err)) if pos_err.size else math.nan, AOE=None)
+    out["count"] = int(pos_err.size)
+    return out
+
+
 def summarize(pos_err, yaw_err, cfg: MetricsConfig = MetricsConfig()) -> dict[str, float]:
     """The paper's numbers from per-sample errors (m, deg): recalls in %, APE (m), AOE (deg),
     and ``count``. Empty inputs give NaN metrics and count 0."""
@@ -126,13 +137,14 @@ def table_header(cfg: MetricsConfig = MetricsConfig(), name: str = "Method") -> 
 
 
 def table_row(name: str, result: dict, cfg: MetricsConfig = MetricsConfig()) -> str:
-    """One markdown row: recalls in % with 2 decimals, APE / AOE with 2 decimals."""
+    """One markdown row: recalls in % with 2 decimals, APE / AOE with 2 decimals ("–" for a
+    None value: a metric the method does not have)."""
     keys = [position_key(t) for t in cfg.position_thresholds]
     keys += [yaw_key(t) for t in cfg.yaw_thresholds]
     missing = [k for k in keys + ["APE", "AOE"] if k not in result]
     if missing:
         raise KeyError(f"table_row({name!r}): result lacks {missing}")
-    cells = [f"{result[k]:.2f}" for k in keys + ["APE", "AOE"]]
+    cells = ["–" if result[k] is None else f"{result[k]:.2f}" for k in keys + ["APE", "AOE"]]
     return "| " + " | ".join([name] + cells) + " |"
 
 

@@ -16,6 +16,7 @@ def main(cfg: DictConfig) -> None:
     from seglocnet_jax.experiment import build_experiment
     from seglocnet_jax.training.loop import train_and_evaluate
 
+    hydra_app.quiet_library_logs()
     hydra_app.maybe_initialize_distributed()
     exp = build_experiment(hydra_app.to_tree(cfg))
     train_and_evaluate(exp, HydraConfig.get().runtime.output_dir)

@@ -163,9 +163,10 @@ def convert_for_training(reader: RealReader, cfg: ConvertConfig, variant: Varian
     return convert(reader, dataclasses.replace(cfg, map_variants=tuple(specs))), variant.name
 
 
-def from_tree(tree: dict, prefix: str = "dataset"):
-    """``(reader, ConvertConfig)`` from a plain ``dataset`` config tree (``conf/dataset/*.yaml``):
-    ``source`` (``nuscenes`` | ``av2``), ``reader`` and ``convert`` sections."""
+def parse_tree(tree: dict, prefix: str = "dataset"):
+    """``(reader class, reader config, ConvertConfig)`` from a plain ``dataset`` config tree
+    (``conf/dataset/*.yaml``: ``source`` (``nuscenes`` | ``av2``), ``reader`` and ``convert``
+    sections), validated without touching the disk."""
     from seglocnet_jax.config_util import ConfigError, from_dict
     from seglocnet_jax.data import argoverse, nuscenes
 
@@ -173,6 +174,8 @@ def from_tree(tree: dict, prefix: str = "dataset"):
         "nuscenes": (nuscenes.NuScenesConfig, nuscenes.NuScenesReader),
         "av2": (argoverse.ArgoverseConfig, argoverse.ArgoverseReader),
     }
+    if not isinstance(tree, dict):
+        raise ConfigError(f"{prefix} must be a mapping with source, reader, convert; got {tree!r}")
     unknown = sorted(set(tree) - {"source", "reader", "convert"})
     if unknown:
         raise ConfigError(
@@ -183,8 +186,19 @@ def from_tree(tree: dict, prefix: str = "dataset"):
     if source not in readers:
         raise ConfigError(f"{prefix}.source must be one of {sorted(readers)}, got {source!r}")
     cfg_cls, reader_cls = readers[source]
-    reader = reader_cls(from_dict(cfg_cls, tree.get("reader"), f"{prefix}.reader"))
-    return reader, from_dict(ConvertConfig, tree.get("convert"), f"{prefix}.convert")
+    reader_cfg = from_dict(cfg_cls, tree.get("reader"), f"{prefix}.reader")
+    return (
+        reader_cls,
+        reader_cfg,
+        from_dict(ConvertConfig, tree.get("convert"), f"{prefix}.convert"),
+    )
+
+
+def from_tree(tree: dict, prefix: str = "dataset"):
+    """``(reader, ConvertConfig)`` from a plain ``dataset`` config tree (see :func:`parse_tree`);
+    the reader opens ``dataset.reader.dataroot``."""
+    reader_cls, reader_cfg, cfg = parse_tree(tree, prefix)
+    return reader_cls(reader_cfg), cfg
 
 
 def summary(dataset_dir: str) -> str:

@@ -76,8 +76,8 @@ class ModelConfig:
     z_min: float = -2.0
     z_max: float = 4.0
     voxel_size: float = geometry.RESOLUTION
-    lidar_widths: tuple[int, ...] = (16, 32, 64)
-    lidar_3d_stages: int = 2
+    lidar_widths: tuple[int, ...] = (8, 32, 64)
+    lidar_3d_stages: int = 1
     # decoder
     decoder_widths: tuple[int, ...] = (48, 32, 16)
     lidar_skips: bool = True

@@ -107,10 +107,11 @@ def write_results(workdir: str, cfg: ExperimentConfig, results: dict, extra: dic
 
 
 def format_table(cfg: ExperimentConfig, results: dict) -> str:
-    rows = [
-        (f"{cfg.name} [{cfg.variant.name}, {cfg.eval.bev_source}] {split}", res)
-        for split, res in results.items()
-    ]
+    rows = []
+    for split, res in results.items():
+        rows.append((f"{cfg.name} [{cfg.variant.name}, {cfg.eval.bev_source}] {split}", res))
+        if "prior" in res:
+            rows.append((f"prior alone (tile centre, no heading) {split}", res["prior"]))
     return metrics.markdown_table(rows)
 
 
@@ -138,6 +139,10 @@ def train_and_evaluate(cfg: ExperimentConfig, workdir: str) -> dict:
         state, data_state, step0 = restored
         data_iter.set_state(data_state)
         _progress(f"resumed from {ckpt.last_dir}/{step0}")
+    elif cfg.train.init_from:  # fine-tuning: parameters only; fresh optimizer, step 0
+        source, source_step = ckpt_lib.restore_params(cfg.train.init_from, jax.device_get(state))
+        state = state.replace(params=source.params)
+        _progress(f"initialized parameters from {cfg.train.init_from} (step {source_step})")
     state = step_lib.replicate(state, mesh)
 
     def loss_fn(params, batch, rng):
