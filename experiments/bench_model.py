@@ -68,7 +68,7 @@ def bench(name: str, mode: str, batch_size: int, repeats: int, image_hw, points:
 
     forward = jax.jit(lambda p, b: api.forward(p, b, cfg)[0])
     localize = jax.jit(lambda p, b: api.localize(p, b, cfg, solver_cfg)["pose_tile"])
-    grad = jax.jit(jax.grad(lambda p, b: api.loss_fn(p, b, cfg)[0]))
+    grad = jax.jit(jax.grad(lambda p, b: api.loss_fn(p, b, cfg, jax.random.key(1))[0]))
     out = {"preset": name, "mode": mode, "batch": batch_size, "image_hw": list(image_hw)}
     out["points"] = points
     out["params_total"] = sum(groups.values())
