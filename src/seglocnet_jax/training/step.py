@@ -34,7 +34,11 @@ def make_mesh(num_devices: int | None = None) -> jax.sharding.Mesh:
 
 
 def device_batch(batch: dict, mesh: jax.sharding.Mesh) -> dict:
-    """Puts the device part of a host batch on the mesh, sharded along its leading axis."""
+    """Puts the device part of a host batch on the mesh, sharded along its leading axis.
+
+    ``batch`` is the global batch (every process's loader yields the same one for a seed);
+    each process places only the slices of its own devices, so the same code runs on one host
+    or many (``jax.distributed``)."""
     sharding = NamedSharding(mesh, P("data"))
     n = mesh.devices.size
     out = {}
@@ -47,7 +51,9 @@ def device_batch(batch: dict, mesh: jax.sharding.Mesh) -> dict:
                 f"batch size {value.shape[0]} (key {key!r}) is not divisible by the "
                 f"{n} devices of the mesh; set train.batch_size to a multiple of {n}"
             )
-        out[key] = jax.device_put(value, sharding)
+        out[key] = jax.make_array_from_callback(
+            value.shape, sharding, lambda index, v=value: v[index]
+        )
     return out
 
 
