@@ -145,3 +145,15 @@ def test_tiny_model_one_vs_eight_devices_agree():
         jax.tree_util.tree_leaves_with_path(p1), jax.tree.leaves(p8), strict=True
     ):
         np.testing.assert_allclose(a, b, atol=1e-5, err_msg=jax.tree_util.keystr(path))
+
+
+def test_checkpoint_path_with_brackets_is_refused_up_front(tmp_path):
+    with pytest.raises(ckpt.CheckpointError, match=r"contains '\[' or '\]'"):
+        ckpt.Checkpointer(str(tmp_path / "eval.splits=[test]"), ckpt.CheckpointConfig())
+
+
+def test_sweep_directory_names_drop_brackets():
+    from seglocnet_jax.hydra_app import safe_dirname
+
+    name = "eval.splits=[test],map.channels=[road,building],map.road_width=5"
+    assert safe_dirname(name) == "eval.splits=test,map.channels=road+building,map.road_width=5"

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+import re
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -24,9 +25,20 @@ def conf_dir() -> str:
     )
 
 
+def safe_dirname(name: str) -> str:
+    """A Hydra ``override_dirname`` usable as a run directory: list values lose their brackets
+    (orbax cannot restore from a path with ``[``/``]``), ``map.channels=[road,building]`` ->
+    ``map.channels=road+building``."""
+    return re.sub(r"\[([^\]]*)\]", lambda m: m.group(1).replace(",", "+"), name).translate(
+        {ord("["): None, ord("]"): None}
+    )
+
+
 def register_resolvers() -> None:
     if not OmegaConf.has_resolver("join"):
         OmegaConf.register_new_resolver("join", lambda xs: "-".join(str(x) for x in xs))
+    if not OmegaConf.has_resolver("dirname"):
+        OmegaConf.register_new_resolver("dirname", safe_dirname)
 
 
 def to_tree(cfg: DictConfig) -> dict:

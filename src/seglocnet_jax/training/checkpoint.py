@@ -44,12 +44,23 @@ def _args(state=None, data_state=None, restore: bool = False):
     )
 
 
+def check_path(path: str) -> None:
+    """orbax (tensorstore) writes checkpoints under a path with ``[`` or ``]`` but cannot read
+    them back; refuse such a path before any work is done."""
+    if "[" in path or "]" in path:
+        raise CheckpointError(
+            f"checkpoint directory {path!r} contains '[' or ']', which orbax/tensorstore cannot "
+            "restore from; choose a run directory without brackets (hydra.run.dir=...)"
+        )
+
+
 class Checkpointer:
     """``<workdir>/checkpoints/last/<step>`` and ``<workdir>/checkpoints/best/<step>``."""
 
     def __init__(self, workdir: str, cfg: CheckpointConfig):
         self.cfg = cfg
         root = os.path.abspath(os.path.join(workdir, "checkpoints"))
+        check_path(root)
         self.last_dir = os.path.join(root, "last")
         self.best_dir = os.path.join(root, "best")
         common = dict(create=True, enable_async_checkpointing=False)
