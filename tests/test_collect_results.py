@@ -34,9 +34,10 @@ def _job(root, name, overrides, r5):
 
 def test_sweep_directories_become_one_row_each(tmp_path):
     root = str(tmp_path / "multirun")
-    _job(root, "map.road_width=2.5", ["map.road_width=2.5"], 40.0)
-    _job(root, "map.road_width=10", ["map.road_width=10"], 61.25)
-    table = _load().collect(root, "test").splitlines()
+    _job(root, "map.road_width=2.5", ["+exp=sim_helsinki_sd", "map.road_width=2.5"], 40.0)
+    _job(root, "map.road_width=10", ["+exp=sim_helsinki_sd", "map.road_width=10"], 61.25)
+    caption, blank, *table = _load().collect(root, "test").splitlines()
+    assert caption == "Split test; every job: +exp=sim_helsinki_sd" and blank == ""
     assert len(table) == 4  # header, separator, two jobs
     rows = {line.split("|")[1].strip(): line for line in table[2:]}
     assert set(rows) == {"map.road_width=2.5", "map.road_width=10"}

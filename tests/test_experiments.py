@@ -92,3 +92,10 @@ def test_nuscenes_experiment_converts_then_reuses(tmp_path):
     assert batch["images"].shape[2:4] == (16, 32)
     shutil.rmtree(root)  # converted: the raw data is no longer needed
     assert prepare_dataset(exp) == ddir
+
+
+def test_model_classes_follow_map_channels():
+    exp = build_experiment(_compose(["map.channels=[road]"]))
+    assert exp.model.num_classes == 1 and exp.variant.channels == ("road",)
+    with pytest.raises(Exception, match="model.num_classes=2 but map.channels"):
+        build_experiment(_compose(["map.channels=[building]", "model.num_classes=2"]))

@@ -7,7 +7,6 @@ from __future__ import annotations
 import dataclasses
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
@@ -16,19 +15,32 @@ from seglocnet_jax import solver
 from seglocnet_jax.model import api, synthetic
 from seglocnet_jax.model.config import preset
 
-# Small inputs keep compilation short; the architecture is the tiny preset's.
+# Small inputs keep compilation short; the architecture is the tiny preset's. Parameters do not
+# depend on H, W, the camera count or the point count.
 HW, CAMS, POINTS = (32, 64), 2, 2048
 TINY = preset("tiny")
+MAX_STEPS = 200
 
 
 def _batch(seed, size=2):
     return synthetic.make_batch(seed, size, num_cams=CAMS, image_hw=HW, num_points=POINTS)
 
 
-def test_network_and_solver_compile_once_and_are_deterministic():
+def _key(seed):
+    # XLA's RngBitGenerator compiles in about half the time of threefry on CPU, and `init` is
+    # compiled once per configuration here; the model code is the same for any key type.
+    return jax.random.key(seed, impl="rbg")
+
+
+@pytest.fixture(scope="module")
+def tiny_params():
+    """Tiny-preset (fused, seg) parameters, initialized once for the whole module."""
+    return api.init(_key(0), _batch(0), TINY)
+
+
+def test_network_and_solver_compile_once_and_are_deterministic(tiny_params):
     cfg = TINY
     solver_cfg = solver.SolverConfig(num_rotations=64)
-    params = api.init(jax.random.key(0), _batch(0), cfg)
     traces = []
 
     @jax.jit
@@ -36,10 +48,10 @@ def test_network_and_solver_compile_once_and_are_deterministic():
         traces.append(1)  # runs only while tracing
         return api.localize(params, batch, cfg, solver_cfg)
 
-    a = jax.device_get(localize(params, _batch(1)))
-    b = jax.device_get(localize(params, _batch(1)))
-    c = jax.device_get(localize(params, _batch(2)))  # new contents, same shapes
-    assert len(traces) == 1
+    a = jax.device_get(localize(tiny_params, _batch(1)))
+    b = jax.device_get(localize(tiny_params, _batch(1)))
+    c = jax.device_get(localize(tiny_params, _batch(2)))  # new contents, same shapes
+    assert len(traces) == 1, f"network + solver traced {len(traces)} times"
     for key in a:
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
     assert a["bev_logits"].shape == (2, 2, 128, 128)
@@ -63,13 +75,15 @@ def _groups(grads):
     "modality,variant",
     [("fused", "seg"), ("camera", "seg"), ("lidar", "seg"), ("fused", "nm")],
 )
-def test_every_parameter_group_gets_a_gradient(modality, variant):
-    cfg = dataclasses.replace(
-        TINY, modality=modality, variant=variant, nm_num_rotations=8, transformer_layers=1
-    )
-    batch = _batch(3)
-    params = api.init(jax.random.key(1), batch, cfg)
-    grads = jax.jit(jax.grad(lambda p: api.loss_fn(p, batch, cfg)[0]))(params)
+def test_every_parameter_group_gets_a_gradient(modality, variant, tiny_params):
+    if (modality, variant) == ("fused", "seg"):
+        cfg, params = TINY, tiny_params
+    else:
+        cfg = dataclasses.replace(
+            TINY, modality=modality, variant=variant, nm_num_rotations=8, transformer_layers=1
+        )
+        params = api.init(_key(1), _batch(0), cfg)
+    grads = jax.jit(jax.grad(lambda p, b: api.loss_fn(p, b, cfg)[0]))(params, _batch(3))
     expected = {"decoder", "fusion"}
     expected |= {"camera"} if modality != "lidar" else set()
     expected |= {"lidar"} if modality != "camera" else set()
@@ -80,42 +94,52 @@ def test_every_parameter_group_gets_a_gradient(modality, variant):
     if modality == "lidar":
         assert "camera" not in grads
     for name, tree in _groups(grads).items():
-        norm = float(sum(jnp.sum(jnp.abs(g)) for g in jax.tree.leaves(tree)))
+        norm = float(sum(np.abs(np.asarray(g)).sum() for g in jax.tree.leaves(tree)))
         assert np.isfinite(norm), f"{modality}/{variant}: non-finite gradient in {name}"
         assert norm > 0, f"{modality}/{variant}: parameter group {name} gets no gradient"
 
 
+def _best_constant_focal(labels: np.ndarray, alpha: float, gamma: float) -> float:
+    """Smallest mean focal loss of a predictor that outputs one logit per class everywhere
+    (the per-class bias alone), by a dense search over the logit."""
+    z = np.linspace(-10.0, 10.0, 4001)[:, None]
+    p = 1 / (1 + np.exp(-z))
+    prevalence = labels.mean(axis=(0, 2, 3))[None]  # (1, C)
+    pos = alpha * np.log1p(np.exp(-z)) * (1 - p) ** gamma
+    neg = (1 - alpha) * np.log1p(np.exp(z)) * p**gamma
+    per_class = prevalence * pos + (1 - prevalence) * neg  # (Z, C)
+    return float(per_class.min(axis=0).mean())
+
+
 @pytest.mark.slow
-def test_tiny_model_overfits_eight_samples():
+def test_tiny_model_overfits_eight_samples(tiny_params):
     cfg = TINY
-    batch = jax.tree.map(jnp.asarray, _batch(4, size=8))
-    params = api.init(jax.random.key(2), batch, cfg)
+    batch = _batch(4, size=8)
     opt = optax.adamw(3e-3, weight_decay=0.0)
-    opt_state = opt.init(params)
     loss_fn = api.make_loss_fn(cfg)
 
     @jax.jit
-    def step(params, opt_state):
+    def step(params, opt_state, batch):
         (loss, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, batch, None)
         updates, opt_state = opt.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss, metrics
 
-    # Stops once the loss has fallen 10x and both classes are segmented (IoU > 0.5): a falling
-    # focal loss alone could be the background bias being learnt.
+    # A falling focal loss alone could be the per-class bias being learnt: the loss must also
+    # end well below the best constant predictor's, and the road (the larger class) be found.
+    constant = _best_constant_focal(batch["bev_gt"], cfg.focal_alpha, cfg.focal_gamma)
+    params, opt_state = tiny_params, opt.init(tiny_params)
     losses = []
     for _ in range(MAX_STEPS):
-        params, opt_state, loss, metrics = step(params, opt_state)
+        params, opt_state, loss, metrics = step(params, opt_state, batch)
         losses.append(float(loss))
         assert np.isfinite(losses[-1]), f"loss {losses[-1]} at step {len(losses)}"
-        ious = [float(metrics[f"iou_c{i}"]) for i in range(cfg.num_classes)]
-        if losses[-1] <= losses[0] / 10 and min(ious) > 0.5:
+        road_iou = float(metrics["iou_c0"])
+        if losses[-1] <= min(losses[0] / 10, constant / 2) and road_iou > 0.5:
             break
     first, last = losses[0], losses[-1]
     assert last <= first / 10, (
         f"focal loss fell only {first / last:.1f}x in {MAX_STEPS} steps: {first:.4f} -> {last:.4f}"
     )
-    assert min(ious) > 0.5, f"training IoUs {ious} after {MAX_STEPS} steps"
-    print(f"focal loss {first:.4f} -> {last:.4f}, IoU {ious} in {len(losses)} steps")
-
-
-MAX_STEPS = 200
+    assert last <= constant / 2, f"focal loss {last:.4f} vs best constant logits {constant:.4f}"
+    assert road_iou > 0.5, f"road IoU {road_iou:.2f} after {len(losses)} steps"
+    print(f"focal loss {first:.4f} -> {last:.4f} (constant {constant:.4f}) in {len(losses)} steps")

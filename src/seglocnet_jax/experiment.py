@@ -100,12 +100,27 @@ def build_experiment(tree: dict) -> ExperimentConfig:
         data=data,
         variant=variant,
         loader=from_dict(loader_lib.LoaderConfig, tree.get("loader"), "loader"),
-        model=from_dict(ModelConfig, tree.get("model"), "model"),
+        model=_model_config(tree.get("model"), variant),
         solver=from_dict(solver.SolverConfig, tree.get("solver"), "solver"),
         train=from_dict(TrainConfig, tree.get("train"), "train"),
         eval=from_dict(EvalConfig, tree.get("eval"), "eval"),
         dataset=dataset,
     )
+
+
+def _model_config(section: dict | None, variant: VariantConfig) -> ModelConfig:
+    """``model.num_classes`` follows ``map.channels`` (null or absent: derived); a number that
+    disagrees is an error naming both keys."""
+    section = dict(section or {})
+    channels = len(variant.channels)
+    if section.get("num_classes") is None:
+        section["num_classes"] = channels
+    elif section["num_classes"] != channels:
+        raise ConfigError(
+            f"model.num_classes={section['num_classes']} but map.channels={list(variant.channels)} "
+            f"has {channels}; leave model.num_classes null to follow the map"
+        )
+    return from_dict(ModelConfig, section, "model")
 
 
 def prepare_dataset(cfg: ExperimentConfig) -> str:
