@@ -1,6 +1,7 @@
 """Benchmarks the network per preset and modality: parameter counts, compile time, forward
 latency per sample (network alone, and network + solver at K=256 as evaluation runs it), train
-step latency, and peak memory.
+step latency, and peak memory: the device's peak bytes in use where the backend reports them
+(GPU), else the process's peak RSS so far (CPU), which only grows from one row to the next.
 
 Inputs are synthetic batches in the loader's schema (``model.synthetic``): the tiny preset at the
 simulator's CPU sizes (6 x 64 x 160 images, 32,768 LiDAR points), the paper preset at 6 x 320 x

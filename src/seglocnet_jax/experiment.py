@@ -161,11 +161,9 @@ def _converted(dataset_dir: str, variant: VariantConfig) -> bool:
     if not os.path.isfile(mf.manifest_path(dataset_dir)):
         return False
     man = mf.read_manifest(dataset_dir)
-    splits = man["splits"].values()
-    shards_ok = all(
-        os.path.exists(os.path.join(dataset_dir, s["file"])) for sp in splits for s in sp["shards"]
-    )
-    if not man.get("complete") or not shards_ok or variant.name not in man["map_variants"]:
+    if not man.get("complete") or not prepare_lib.all_shards_exist(man, dataset_dir):
         return False
-    cities = {c for sp in splits for c in sp["cities"]}
+    if variant.name not in man["map_variants"]:
+        return False
+    cities = {c for sp in man["splits"].values() for c in sp["cities"]}
     return all(os.path.exists(variant_path(dataset_dir, variant.name, c)) for c in cities)

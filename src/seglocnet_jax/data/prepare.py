@@ -259,7 +259,7 @@ def prepare(
     man = None
     if cfg.source != "sim" and source_factory is None:
         man = mf.read_manifest(dataset_dir)  # a converter wrote it; names the missing file
-        if not man["complete"] or not _all_shards_exist(man, dataset_dir):
+        if not man["complete"] or not all_shards_exist(man, dataset_dir):
             raise mf.ManifestError(
                 f"{mf.manifest_path(dataset_dir)}: conversion is incomplete "
                 f"(source {cfg.source!r}); run the converter again"
@@ -271,7 +271,7 @@ def prepare(
     if factory is None and cfg.source == "sim":
         factory = default_source_factory(cfg)
     sources = {}
-    if man is None or not man["complete"] or not _all_shards_exist(man, dataset_dir):
+    if man is None or not man["complete"] or not all_shards_exist(man, dataset_dir):
         sources[cfg.city] = factory(cfg.city)
         plans = plan_main_city(sources[cfg.city], cfg)
         if cfg.test_city:
@@ -321,7 +321,7 @@ def prepare_for_training(
     return prepare(cfg, source_factory, variants=wanted), variant.name
 
 
-def _all_shards_exist(man: dict, dataset_dir: str) -> bool:
+def all_shards_exist(man: dict, dataset_dir: str) -> bool:
     return all(
         os.path.exists(os.path.join(dataset_dir, s["file"]))
         for split in man["splits"].values()
