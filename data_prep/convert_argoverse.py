@@ -13,7 +13,7 @@ import sys
 
 from hydra import compose, initialize_config_dir
 
-from seglocnet_jax import hydra_app
+from seglocnet_jax.app import hydra_glue
 from seglocnet_jax.data.real_convert import convert, from_tree, summary
 
 
@@ -21,8 +21,8 @@ def main(argv: list[str]) -> None:
     preset = "argo_mia"
     if argv[:1] == ["--preset"]:
         preset, argv = argv[1], argv[2:]
-    with initialize_config_dir(config_dir=hydra_app.conf_dir(), version_base="1.3"):
-        tree = hydra_app.to_tree(compose(config_name=f"dataset/{preset}", overrides=argv))
+    with initialize_config_dir(config_dir=hydra_glue.conf_dir(), version_base="1.3"):
+        tree = hydra_glue.to_tree(compose(config_name=f"dataset/{preset}", overrides=argv))
     reader, cfg = from_tree(tree["dataset"])  # a group file sits under its group name
     dataset_dir = convert(reader, cfg)
     print(summary(dataset_dir))

@@ -10,23 +10,19 @@ The logic lives in ``seglocnet_jax.data.prepare``; an interrupted run resumes wh
 import hydra
 from omegaconf import DictConfig
 
-from seglocnet_jax import hydra_app
-from seglocnet_jax.config_util import from_dict
-from seglocnet_jax.data.prepare import PrepareConfig, prepare_for_training
-from seglocnet_jax.data.variants import VariantConfig
+from seglocnet_jax.app import hydra_glue
 
-hydra_app.register_resolvers()
+hydra_glue.register_resolvers()
 
 
-@hydra.main(version_base="1.3", config_path=hydra_app.conf_dir(), config_name="config")
+@hydra.main(version_base="1.3", config_path=hydra_glue.conf_dir(), config_name="config")
 def main(cfg: DictConfig) -> None:
-    tree = hydra_app.to_tree(cfg)
-    prep = from_dict(PrepareConfig, tree["data"], "data")
-    variant = from_dict(
-        VariantConfig, {k: tree["map"][k] for k in ("kind", "road_width", "channels")}, "map"
-    )
-    dataset_dir, name = prepare_for_training(prep, variant)
-    print(f"dataset: {dataset_dir} (map variant {name})")
+    from seglocnet_jax.app.datasets import prepare_dataset
+    from seglocnet_jax.app.schema import build_experiment
+
+    exp = build_experiment(hydra_glue.to_tree(cfg))  # the same config and path as `train`
+    dataset_dir = prepare_dataset(exp)
+    print(f"dataset: {dataset_dir} (map variants: {exp.map.name} and data.map_variants)")
 
 
 if __name__ == "__main__":

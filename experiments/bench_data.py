@@ -76,12 +76,7 @@ class SynthRaster:
 
     def tile(self, x, y):
         r0, c0, cx, cy = geometry.tile_window(self.grid, x, y)
-        s = geometry.TILE_SIZE
-        out = np.zeros((2, s, s), np.uint8)
-        rs, cs = max(r0, 0), max(c0, 0)
-        re, ce = min(r0 + s, self.grid.height), min(c0 + s, self.grid.width)
-        out[:, rs - r0 : re - r0, cs - c0 : ce - c0] = self.mask[:, rs:re, cs:ce]
-        return out, (float(cx), float(cy))
+        return geometry.crop(self.mask, r0, c0, geometry.TILE_SIZE), (float(cx), float(cy))
 
     def cut_bev(self, pose):
         w = geometry.ego_to_world(pose, self._centres)
@@ -135,9 +130,9 @@ def main():
         variant = None
     else:
         rasters, variant = None, cfg.map_variants[0]
-        from seglocnet_jax.data.variants import VariantConfig
+        from seglocnet_jax.maps import MapConfig
 
-        variant = VariantConfig(**variant).name
+        variant = MapConfig(**variant).name
     lcfg = ld.LoaderConfig(num_threads=args.threads, prefetch=2 * max(args.threads, 1))
     loader = ld.make_loader(
         ddir, "train", variant, args.batch, 0, True, config=lcfg, rasters=rasters

@@ -26,7 +26,7 @@ import time
 import jax
 import numpy as np
 
-from seglocnet_jax import solver
+from seglocnet_jax import evaluation, solver
 from seglocnet_jax.model import api, synthetic
 from seglocnet_jax.model.config import preset
 
@@ -68,7 +68,11 @@ def bench(name: str, mode: str, batch_size: int, repeats: int, image_hw, points:
     solver_cfg = solver.SolverConfig()  # K = 256, fft
 
     forward = jax.jit(lambda p, b: api.forward(p, b, cfg)[0])
-    localize = jax.jit(lambda p, b: api.localize(p, b, cfg, solver_cfg)["pose_tile"])
+    step = evaluation.make_localize_step(cfg, solver_cfg)  # what every evaluation runs
+
+    def localize(p, b):
+        return step(p, b)["pose_tile"]
+
     grad = jax.jit(jax.grad(lambda p, b: api.loss_fn(p, b, cfg, jax.random.key(1))[0]))
     out = {"preset": name, "mode": mode, "batch": batch_size, "image_hw": list(image_hw)}
     out["points"] = points

@@ -30,7 +30,7 @@ def consistency(world, sim, poses) -> dict:
 
     city = load_city(world.name)
     walls = shapely.union_all([shapely.boundary(b.geometry) for b in city.buildings])
-    arrays = sim.render_arrays(poses, seed=0)
+    arrays = sim.render_arrays(poses, seed=0, diagnostics=True)
     dist = []
     for i, pose in enumerate(poses):
         sel = arrays["lidar_valid"][i] & (arrays["lidar_thing"][i] == Thing.BUILDING)

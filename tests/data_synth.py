@@ -75,14 +75,8 @@ class ArrayRaster:
 
     def tile(self, x: float, y: float):
         row0, col0, cx, cy = geometry.tile_window(self.grid, x, y)
-        c, h, w = self.mask.shape
-        size = geometry.TILE_SIZE
-        out = np.zeros((c, size, size), np.uint8)
-        r0, r1 = max(row0, 0), min(row0 + size, h)
-        c0, c1 = max(col0, 0), min(col0 + size, w)
-        if r1 > r0 and c1 > c0:
-            out[:, r0 - row0 : r1 - row0, c0 - col0 : c1 - col0] = self.mask[:, r0:r1, c0:c1]
-        return out, (float(cx), float(cy))
+        tile = geometry.crop(self.mask, row0, col0, geometry.TILE_SIZE)
+        return tile, (float(cx), float(cy))
 
     def cut_bev(self, pose):
         world = geometry.ego_to_world(pose, geometry.bev_cell_centers_ego())  # (128, 128, 2)

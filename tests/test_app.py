@@ -9,10 +9,11 @@ import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
+from seglocnet_jax import evaluation
+from seglocnet_jax.app import eval_run, train_run
+from seglocnet_jax.app.schema import build_experiment
 from seglocnet_jax.config_util import ConfigError
-from seglocnet_jax.experiment import build_experiment
 from seglocnet_jax.training import checkpoint as ckpt_lib
-from seglocnet_jax.training import loop
 from seglocnet_jax.training import step as step_lib
 
 
@@ -64,9 +65,10 @@ def _final_params(workdir):
 def test_train_evaluate_gt_and_figures(data_root, tmp_path, capsys):
     cfg = build_experiment(_tree(data_root, eval_every=2))
     workdir = str(tmp_path / "run")
-    results = loop.train_and_evaluate(cfg, workdir)
+    results = train_run.train_and_evaluate(cfg, workdir)
     out = capsys.readouterr().out
-    assert "| app_test [hd_road-building, model] test |" in out  # the paper-style table
+    assert "| app_test [hd_road-building, tiny-seg] test |" in out  # the paper-style table
+    assert "[seglocnet] time: data preparation" in out
     assert results["test"]["count"] == 4  # one batch of 4 (eval.max_batches=1)
     saved = json.load(open(os.path.join(workdir, "results.json")))
     assert saved["splits"]["test"]["APE"] == pytest.approx(results["test"]["APE"])
@@ -76,7 +78,7 @@ def test_train_evaluate_gt_and_figures(data_root, tmp_path, capsys):
     assert {"train", "val", "test"} <= {ln["split"] for ln in lines}
 
     # evaluate app from the run's checkpoint reproduces the run's test numbers.
-    ev = loop.run_evaluation(cfg, workdir, str(tmp_path / "eval"))
+    ev = eval_run.run_evaluation(cfg, workdir, str(tmp_path / "eval"))
     assert ev["test"]["APE"] == pytest.approx(results["test"]["APE"], abs=1e-6)
 
     # GT-segmentation upper bound: no checkpoint, same code path, near-perfect localization.
@@ -91,7 +93,7 @@ def test_train_evaluate_gt_and_figures(data_root, tmp_path, capsys):
             },
         }
     )
-    gt = loop.run_evaluation(gt_cfg, None, str(tmp_path / "gt"))
+    gt = eval_run.run_evaluation(gt_cfg, None, str(tmp_path / "gt"))
     assert gt["test"]["count"] == 8 and gt["val"]["count"] == 8
     assert gt["test"]["R@5m"] >= 75.0 and gt["val"]["R@5m"] >= 75.0
     assert os.listdir(tmp_path / "gt" / "figures" / "val")
@@ -100,15 +102,15 @@ def test_train_evaluate_gt_and_figures(data_root, tmp_path, capsys):
 def test_missing_checkpoint_is_reported(data_root, tmp_path):
     cfg = build_experiment(_tree(data_root))
     with pytest.raises(ckpt_lib.CheckpointError, match="required"):
-        loop.run_evaluation(cfg, None, str(tmp_path / "e"))
+        eval_run.run_evaluation(cfg, None, str(tmp_path / "e"))
     with pytest.raises(ckpt_lib.CheckpointError, match="does not exist"):
-        loop.run_evaluation(cfg, str(tmp_path / "nowhere"), str(tmp_path / "e"))
+        eval_run.run_evaluation(cfg, str(tmp_path / "nowhere"), str(tmp_path / "e"))
 
 
 def test_rerun_is_bit_identical_and_resume_equals_uninterrupted(data_root, tmp_path, monkeypatch):
     cfg = build_experiment(_tree(data_root))
-    loop.train_and_evaluate(cfg, str(tmp_path / "a"))
-    loop.train_and_evaluate(cfg, str(tmp_path / "b"))
+    train_run.train_and_evaluate(cfg, str(tmp_path / "a"))
+    train_run.train_and_evaluate(cfg, str(tmp_path / "b"))
     step_a, params_a = _final_params(str(tmp_path / "a"))
     step_b, params_b = _final_params(str(tmp_path / "b"))
     assert step_a == step_b == 4
@@ -132,10 +134,10 @@ def test_rerun_is_bit_identical_and_resume_equals_uninterrupted(data_root, tmp_p
 
     monkeypatch.setattr(step_lib, "make_train_step", killing_make)
     with pytest.raises(KeyboardInterrupt):
-        loop.train_and_evaluate(cfg, str(tmp_path / "c"))
+        train_run.train_and_evaluate(cfg, str(tmp_path / "c"))
     monkeypatch.setattr(step_lib, "make_train_step", real_make)
     assert _final_params(str(tmp_path / "c"))[0] == 2
-    loop.train_and_evaluate(cfg, str(tmp_path / "c"))
+    train_run.train_and_evaluate(cfg, str(tmp_path / "c"))
     step_c, params_c = _final_params(str(tmp_path / "c"))
     assert step_c == 4
     for x, y in zip(jax.tree.leaves(params_a), jax.tree.leaves(params_c), strict=True):
@@ -168,3 +170,118 @@ def test_bad_config_names_the_key(data_root, override, key):
     with pytest.raises((ConfigError, ValueError), match=key.split(".")[0]) as err:
         build_experiment(tree)
     assert key in str(err.value)
+
+
+def _with(tree, **sections):
+    out = dict(tree)
+    for section, values in sections.items():
+        out[section] = {**out.get(section, {}), **values}
+    return out
+
+
+def test_nm_is_evaluated_with_its_neural_map(data_root, tmp_path):
+    """model.variant=nm: training, validation and the evaluate app localize with the BEV
+    matching features against the neural map; changing only the neural-map parameters changes
+    the evaluated poses."""
+    cfg = build_experiment(
+        _with(_tree(data_root, num_steps=2), model={"variant": "nm"}, eval={"num_figures": 0})
+    )
+    workdir = str(tmp_path / "nm")
+    results = train_run.train_and_evaluate(cfg, workdir)
+    assert results["test"]["count"] == 4
+
+    mesh = step_lib.make_mesh(1)
+    evaluator = train_run.Evaluator(cfg, os.path.join(data_root, "tiny"), mesh, str(tmp_path))
+    example = step_lib.device_batch(next(iter(evaluator.loader("test"))), mesh)
+    state, _ = train_run.init_state(cfg, example)
+    target = jax.device_get(state)
+    restored, _ = ckpt_lib.restore_params(workdir, target)
+    params = restored.params
+    base = evaluator.step(params, example)
+    bent = dict(params)
+    bent["neural_map"] = jax.tree.map(lambda x: -x + 0.3, params["neural_map"])
+    moved = evaluator.step(bent, example)
+    assert not np.allclose(np.asarray(base["pose_tile"]), np.asarray(moved["pose_tile"]))
+    # ... while a seg model ignores a parameter group of that name entirely: it has none.
+    assert (
+        "neural_map"
+        not in train_run.init_state(build_experiment(_tree(data_root)), example)[0].params
+    )
+
+
+def test_validation_rounds_never_recompile(data_root, tmp_path):
+    cfg = build_experiment(
+        _tree(data_root, num_steps=4, eval_every=1, checkpoint={"every_steps": 4})
+    )
+    key = (cfg.model, cfg.solver, "model", False)
+    before = evaluation.TRACE_COUNTS.get(key, 0)
+    train_run.train_and_evaluate(cfg, str(tmp_path / "v"))  # 4 validation rounds + test
+    assert evaluation.TRACE_COUNTS[key] - before <= 1
+
+
+def test_rerun_with_another_config_is_refused_not_relabelled(data_root, tmp_path):
+    workdir = str(tmp_path / "run")
+    cfg = build_experiment(_tree(data_root))
+    train_run.train_and_evaluate(cfg, workdir)
+    first = json.load(open(os.path.join(workdir, "results.json")))
+    assert first["config"]["train"]["seed"] == 0
+    for change in (
+        {"train": {"seed": 1}},
+        {"train": {"optim": {"warmup_steps": 1, "learning_rate": 0.05}}},
+        {"model": {"modality": "camera"}},
+    ):
+        tree = _tree(data_root)
+        for section, values in change.items():
+            tree[section] = {**tree[section], **values}
+        with pytest.raises(ConfigError, match="train.restart=true") as err:
+            train_run.train_and_evaluate(build_experiment(tree), workdir)
+        key = next(iter(change)) + "." + next(iter(next(iter(change.values()))))
+        assert key in str(err.value)
+    # Nothing was overwritten: the results still describe the seed-0 model.
+    assert json.load(open(os.path.join(workdir, "results.json"))) == first
+    # Operational keys may change: a rerun with another log period resumes the finished run.
+    train_run.train_and_evaluate(build_experiment(_tree(data_root, log_every=2)), workdir)
+    # train.restart=true keeps the old checkpoints aside and starts over.
+    tree = _tree(data_root, seed=1, restart=True)
+    train_run.train_and_evaluate(build_experiment(tree), workdir)
+    assert json.load(open(os.path.join(workdir, "results.json")))["config"]["train"]["seed"] == 1
+    assert [d for d in os.listdir(workdir) if d.startswith("checkpoints.discarded-")]
+
+
+def test_evaluating_with_another_model_config_names_the_keys(data_root, tmp_path):
+    workdir = str(tmp_path / "run")
+    train_run.train_and_evaluate(build_experiment(_tree(data_root)), workdir)
+    other = build_experiment(_with(_tree(data_root), model={"modality": "camera"}))
+    with pytest.raises(ConfigError, match="model.modality"):
+        eval_run.run_evaluation(other, workdir, str(tmp_path / "e"))
+
+
+def test_a_second_process_on_the_run_directory_is_refused(data_root, tmp_path):
+    import subprocess
+    import sys
+
+    from seglocnet_jax import fileio
+
+    workdir = tmp_path / "locked"
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time; from seglocnet_jax import fileio; "
+            f"fileio.DirLock({str(workdir)!r}, 'training run').acquire(); "
+            "print('held', flush=True); "
+            "time.sleep(60)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(fileio.LockError, match=f"pid {holder.pid}"):
+            train_run.train_and_evaluate(build_experiment(_tree(data_root)), str(workdir))
+    finally:
+        holder.kill()
+        holder.wait()
+    # The holder died without releasing: the lock is taken over.
+    with fileio.DirLock(str(workdir), "test") as lock:
+        assert lock.previous["pid"] == holder.pid

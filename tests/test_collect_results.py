@@ -47,3 +47,47 @@ def test_sweep_directories_become_one_row_each(tmp_path):
 def test_empty_directory_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="no results.json"):
         _load().collect(str(tmp_path), "test")
+
+
+def _crashed_job(root, name, overrides, log_lines=None):
+    job = os.path.join(root, name)
+    os.makedirs(os.path.join(job, ".hydra"))
+    with open(os.path.join(job, ".hydra", "overrides.yaml"), "w") as f:
+        f.write("".join(f"- {o}\n" for o in overrides))
+    if log_lines is not None:
+        with open(os.path.join(job, "train.log"), "w") as f:
+            f.write("".join(f"{ln}\n" for ln in log_lines))
+    return job
+
+
+def test_job_without_results_is_listed_as_failed_and_fails_the_script(tmp_path, capsys):
+    root = str(tmp_path / "multirun")
+    _job(root, "map.road_width=10", ["+exp=sim_helsinki_sd", "map.road_width=10"], 61.25)
+    crashed = _crashed_job(
+        root,
+        "map.road_width=2.5",
+        ["+exp=sim_helsinki_sd", "map.road_width=2.5"],
+        [f"step {i}" for i in range(20)] + ["FloatingPointError: loss is nan at step 140"],
+    )
+    unfinished = _crashed_job(
+        root, "map.road_width=5", ["+exp=sim_helsinki_sd", "map.road_width=5"]
+    )
+    mod = _load()
+    text = mod.collect(root, "test")
+    lines = text.splitlines()
+    assert lines[0] == "Split test; every job: +exp=sim_helsinki_sd"
+    rows = {ln.split("|")[1].strip(): ln for ln in lines if ln.startswith("| map.")}
+    assert set(rows) == {
+        "map.road_width=10",
+        "map.road_width=2.5 (FAILED)",
+        "map.road_width=5 (FAILED)",
+    }
+    assert "61.2" in rows["map.road_width=10"] and "–" in rows["map.road_width=5 (FAILED)"]
+    assert f"- {crashed}: no results.json" in text and f"- {unfinished}: no results.json" in text
+    assert "train.log: FloatingPointError: loss is nan at step 140" in text
+    assert "train.log: step 0" not in text  # only the last lines
+    assert "(no log file)" in text
+    assert mod.main([root]) == 1
+    assert "2 job(s) failed" in capsys.readouterr().err
+    assert mod.main([root, "--allow-failed"]) == 0
+    assert "map.road_width=5 (FAILED)" in capsys.readouterr().out

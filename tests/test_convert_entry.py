@@ -89,7 +89,7 @@ def test_convert_argoverse_entry_point_presets(tmp_path, capsys):
 def test_from_tree_names_bad_keys_and_training_adds_a_variant(tmp_path):
     from seglocnet_jax.config_util import ConfigError
     from seglocnet_jax.data import real_convert as rconv
-    from seglocnet_jax.data.variants import VariantConfig
+    from seglocnet_jax.maps import MapConfig
 
     with pytest.raises(ConfigError, match="dataset.source must be one of"):
         rconv.from_tree({"source": "kitti"})
@@ -109,10 +109,10 @@ def test_from_tree_names_bad_keys_and_training_adds_a_variant(tmp_path):
             },
         }
     )
-    ddir, name = rconv.convert_for_training(reader, cfg, VariantConfig("hd", channels=("road",)))
+    ddir, name = rconv.convert_for_training(reader, cfg, MapConfig("hd", channels=("road",)))
     assert name == "hd_road"
     reader.load = lambda frame: pytest.fail("sensors read again")
-    sd = VariantConfig("sd", road_width=5.0, channels=("road",))
+    sd = MapConfig("sd", road_width=5.0, channels=("road",))
     with pytest.raises(RealDataError, match=r"needs OSM: set dataset\.convert\.osm\.MIA"):
         rconv.convert_for_training(reader, cfg, sd)
     osm = tmp_path / "mia.osm"

@@ -14,7 +14,8 @@ CONF = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "conf"))
 
 def _data(preset):
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return OmegaConf.to_container(compose(f"data/{preset}"), resolve=True)["data"]
+        tree = OmegaConf.to_container(compose("config", [f"data={preset}"]), resolve=True)
+    return tree["data"]  # data.name interpolates the sim preset's name
 
 
 def test_presets_compose_and_full_is_ten_times_quick():
@@ -29,7 +30,8 @@ def test_presets_compose_and_full_is_ten_times_quick():
     for key in ("num_train", "num_val", "num_test", "num_test_city"):
         assert getattr(full, key) >= 10 * getattr(quick, key), key
     assert quick.identity() != full.identity() and full.name != quick.name
-    assert [v["kind"] for v in quick.map_variants] == ["hd", "sd"]
+    assert quick.name == "sim_quick_cpu" and full.name == "sim_full_cpu"
+    assert [v["kind"] for v in quick.map_variants] == ["hd"]  # the run adds its own map
 
 
 def test_unknown_key_and_bad_variant_are_named():

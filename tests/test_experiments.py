@@ -11,22 +11,24 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 import fixtures_real as fx
-from seglocnet_jax import hydra_app, maps
+from seglocnet_jax import maps
+from seglocnet_jax.app import hydra_glue
+from seglocnet_jax.app.datasets import prepare_dataset
+from seglocnet_jax.app.schema import build_experiment
 from seglocnet_jax.data import nuscenes as nu
 from seglocnet_jax.data.loader import make_loader
-from seglocnet_jax.experiment import build_experiment, prepare_dataset
 
 EXPS = sorted(
     os.path.splitext(os.path.basename(p))[0]
-    for p in glob.glob(os.path.join(hydra_app.conf_dir(), "exp", "*.yaml"))
+    for p in glob.glob(os.path.join(hydra_glue.conf_dir(), "exp", "*.yaml"))
 )
 REAL = {"nusc_hd": "nuscenes", "nusc_sd": "nuscenes", "argo_mia": "av2", "argo_pit": "av2"}
 
 
 def _compose(overrides):
-    hydra_app.register_resolvers()
-    with initialize_config_dir(config_dir=hydra_app.conf_dir(), version_base="1.3"):
-        return hydra_app.to_tree(compose(config_name="config", overrides=overrides))
+    hydra_glue.register_resolvers()
+    with initialize_config_dir(config_dir=hydra_glue.conf_dir(), version_base="1.3"):
+        return hydra_glue.to_tree(compose(config_name="config", overrides=overrides))
 
 
 def test_every_paper_experiment_exists():

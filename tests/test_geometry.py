@@ -2,6 +2,8 @@
 
 import math
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -43,6 +45,30 @@ def test_tile_window_centre_is_snapped_corner():
     row0, col0, cx, cy = g.tile_window(grid, 100.1, 99.8)
     assert (cx, cy) == (100.0, 100.0)
     assert (row0, col0) == (200 - 128, 200 - 128)
+
+
+def test_crop_pads_with_zeros_outside_the_array():
+    a = np.arange(2 * 5 * 6).reshape(2, 5, 6) + 1  # no zeros inside
+    np.testing.assert_array_equal(g.crop(a, 1, 2, 3), a[:, 1:4, 2:5])
+    out = g.crop(a, -1, 4, 3)  # one row above, one column right of the array
+    assert out.shape == (2, 3, 3) and out.dtype == a.dtype
+    np.testing.assert_array_equal(out[:, 1:, :2], a[:, :2, 4:])
+    assert not out[:, 0].any() and not out[:, :, 2].any()
+    assert not g.crop(a, 10, 10, 4).any()  # entirely outside
+    inside = g.crop(a, 0, 0, 2)
+    inside[:] = 0  # a copy: the source is untouched
+    assert a.min() == 1
+
+
+def test_priors_lie_within_the_prior_range_of_the_pose():
+    xy = np.array([[100.0, -50.0]] * 2000)
+    priors = g.sample_priors(xy, np.random.default_rng(0))
+    off = priors - xy
+    assert priors.shape == xy.shape
+    assert np.abs(off).max() <= g.PRIOR_RANGE and np.abs(off).max() > 0.95 * g.PRIOR_RANGE
+    assert abs(off.mean()) < 1.5  # centred (the std of the mean is ~0.4 m)
+    one = g.sample_priors(xy[0], np.random.default_rng(0))  # (2,): the first draws
+    np.testing.assert_array_equal(one, priors[0])
 
 
 def test_ego_world_round_trip_and_heading():
@@ -110,3 +136,35 @@ def test_pose_from_matrix_reads_yaw_ccw_from_east_and_drops_tilt():
     # The ego forward axis maps to world (cos yaw, sin yaw), as ego_to_world says.
     fwd = g.ego_to_world(g.pose_from_matrix(t), np.array([1.0, 0.0])) - [10.0, -3.0]
     np.testing.assert_allclose(fwd, [math.cos(yaw), math.sin(yaw)], atol=1e-12)
+
+
+def test_cell_pose_conversions_agree_in_numpy_and_jitted_jax():
+    """One function per conversion: NumPy (float64) and JAX (float32, under jit) agree, and
+    pose_to_cell inverts cell_to_pose."""
+    K = 256
+    rng = np.random.default_rng(3)
+    cells = rng.uniform([0, 0, 0], [K, 128, 128], size=(50, 3))
+    pose_np = g.cell_to_pose(cells, K)
+    assert pose_np.dtype == np.float64
+    pose_jax = jax.jit(g.cell_to_pose, static_argnums=1)(jnp.asarray(cells, jnp.float32), K)
+    assert isinstance(pose_jax, jax.Array)
+    np.testing.assert_allclose(np.asarray(pose_jax)[:, :2], pose_np[:, :2], atol=1e-4)
+    assert np.all(g.angle_error(np.asarray(pose_jax)[:, 2], pose_np[:, 2]) < 1e-5)
+    # Each column is the scalar conversion of its cell.
+    dx, dy = g.cell_to_tile_offset(cells[:, 1], cells[:, 2])
+    np.testing.assert_array_equal(pose_np[:, 0], dx)
+    np.testing.assert_array_equal(pose_np[:, 1], dy)
+    np.testing.assert_array_equal(pose_np[:, 2], g.yaw_from_rotation(cells[:, 0], K))
+    np.testing.assert_allclose(g.pose_to_cell(pose_np, K), cells, atol=1e-9)
+    back = jax.jit(g.pose_to_cell, static_argnums=1)(pose_jax, K)
+    np.testing.assert_allclose(np.asarray(back), cells, atol=1e-3)
+    # The centre cell, heading north, is the tile centre.
+    np.testing.assert_allclose(g.cell_to_pose(np.array([0, 64, 64]), K), [0, 0, math.pi / 2])
+
+
+def test_ego_to_bev_pixel_agrees_in_numpy_and_jax():
+    pts = np.random.default_rng(1).uniform(-40, 40, size=(100, 2))
+    r_np, c_np = g.ego_to_bev_pixel(pts)
+    r_j, c_j = jax.jit(g.ego_to_bev_pixel)(jnp.asarray(pts, jnp.float32))
+    np.testing.assert_allclose(np.asarray(r_j), r_np, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(c_j), c_np, atol=1e-4)

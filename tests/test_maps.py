@@ -316,6 +316,12 @@ def test_save_load_round_trip(tmp_path, helsinki_sd):
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
     with pytest.raises(maps.MapError, match="bad.npz"):
         maps.CityRaster.load(tmp_path / "bad.npz")
+    data = (tmp_path / "helsinki.npz").read_bytes()
+    (tmp_path / "cut.npz").write_bytes(data[: len(data) // 2])  # truncated: a kill mid-copy
+    with pytest.raises(maps.MapError, match="cut.npz: corrupt"):
+        maps.CityRaster.load(tmp_path / "cut.npz")
+    with pytest.raises(maps.MapError, match="nowhere.npz: city raster file does not exist"):
+        maps.CityRaster.load(tmp_path / "nowhere.npz")
 
 
 # --------------------------------------------------------------------------- bad input
@@ -373,7 +379,8 @@ def test_no_roads_or_no_buildings_is_an_error(tmp_path):
         (dict(road_width=0.0), "map.road_width.*0.0"),
         (dict(road_width=-5), "map.road_width.*-5"),
         (dict(kind="xd"), "map.kind.*'xd'"),
-        (dict(resolution=0), "map.resolution"),
+        (dict(channels=("sky",)), "map.channels.*'sky'.*allowed: road, building"),
+        (dict(channels=5), "map.channels"),
     ],
 )
 def test_map_config_validation_names_key_and_value(kwargs, match):
@@ -407,7 +414,6 @@ def test_map_section_to_configs():
             "city": "kouvola",
             "road_width": 5,
             "channels": ["building"],
-            "resolution": 0.5,
             "projection": "utm",
             "utm_zone": 35,
             "origin_latlon": [60.53, 26.95],
@@ -429,26 +435,18 @@ def test_preview_command_writes_pngs(tmp_path):
 
     from PIL import Image
 
-    conf = tmp_path / "conf"
-    (conf / "map").mkdir(parents=True)
-    repo_conf = os.path.join(os.path.dirname(__file__), "..", "conf", "map")
-    for name in ("hd.yaml", "sd.yaml"):
-        with open(os.path.join(repo_conf, name)) as f:
-            (conf / "map" / name).write_text(f.read())
-    (conf / "config.yaml").write_text("defaults:\n  - map: sd\n  - _self_\nname: t\n")
     osm_path = write_osm_xml(tmp_path / "tiny.osm")
     out = tmp_path / "out"
-    env = dict(os.environ, SEGLOCNET_CONF=str(conf))
-    proc = subprocess.run(
+    proc = subprocess.run(  # the preview app with the repository's conf/preview.yaml
         [
             sys.executable,
             "-m",
-            "seglocnet_jax.maps.preview",
-            f"map.city={osm_path}",
+            "seglocnet_jax.preview",
+            "map=sd",
+            f"source.city={osm_path}",
             f"hydra.run.dir={out}",
             "map.road_width=5",
         ],
-        env=env,
         capture_output=True,
         text=True,
         timeout=120,

@@ -11,7 +11,7 @@ import numpy as np
 import optax
 import pytest
 
-from seglocnet_jax import solver
+from seglocnet_jax import evaluation, solver
 from seglocnet_jax.model import api, synthetic
 from seglocnet_jax.model.config import preset
 
@@ -39,24 +39,21 @@ def tiny_params():
 
 
 def test_network_and_solver_compile_once_and_are_deterministic(tiny_params):
-    cfg = TINY
+    # The one localize step every evaluation uses (evaluation.make_localize_step).
     solver_cfg = solver.SolverConfig(num_rotations=64)
-    traces = []
-
-    @jax.jit
-    def localize(params, batch):
-        traces.append(1)  # runs only while tracing
-        return api.localize(params, batch, cfg, solver_cfg)
-
-    a = jax.device_get(localize(tiny_params, _batch(1)))
-    b = jax.device_get(localize(tiny_params, _batch(1)))
-    c = jax.device_get(localize(tiny_params, _batch(2)))  # new contents, same shapes
-    assert len(traces) == 1, f"network + solver traced {len(traces)} times"
-    for key in a:
-        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
-    assert a["bev_logits"].shape == (2, 2, 128, 128)
-    assert a["pose_tile"].shape == (2, 3)
-    assert not np.array_equal(a["bev_logits"], c["bev_logits"])
+    step = evaluation.make_localize_step(TINY, solver_cfg, "model")
+    key = (TINY, solver_cfg, "model", True)
+    before = evaluation.TRACE_COUNTS.get(key, 0)
+    a = jax.device_get(step(tiny_params, _batch(1), figures=True))
+    b = jax.device_get(step(tiny_params, _batch(1), figures=True))
+    c = jax.device_get(step(tiny_params, _batch(2), figures=True))  # new contents, same shapes
+    assert evaluation.TRACE_COUNTS[key] - before == 1, "network + solver traced more than once"
+    assert evaluation.make_localize_step(TINY, solver_cfg, "model") is step  # cached
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    assert a["probs"].shape == (2, 2, 128, 128) and a["likelihood"].shape == (2, 129, 129)
+    assert a["pose_tile"].shape == (2, 3) and a["inter"].shape == (2, 2)
+    assert not np.array_equal(a["probs"], c["probs"])
 
 
 def _groups(grads):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from seglocnet_jax import geometry as g
-from seglocnet_jax import metrics, solver, upper_bound
+from seglocnet_jax import metrics, solver
 from seglocnet_jax.maps import MapConfig, load_city, rasterize
 
 NUM_POSES = 200
@@ -37,12 +37,17 @@ def test_helsinki_gt_segmentation_is_recovered(helsinki_sd):
     assert raster.mask.shape[0] == 2  # road, building
     rng = np.random.default_rng(SEED)
     poses = road_poses(city.roads, NUM_POSES, rng)
-    priors = upper_bound.sample_priors(poses, rng)
-    bev, tile, centre = upper_bound.gt_inputs(raster, poses, priors)
-    cfg = solver.SolverConfig(refine=True, return_volume=True)
+    priors = poses[:, :2] + rng.uniform(-g.PRIOR_RANGE, g.PRIOR_RANGE, size=(NUM_POSES, 2))
+    bev = np.stack([raster.cut_bev(p) for p in poses]).astype(np.float32)
+    tiles = [raster.tile(float(x), float(y)) for x, y in priors]
+    tile = np.stack([t for t, _ in tiles]).astype(np.float32)
+    centre = np.asarray([c for _, c in tiles], np.float64)
+    cfg = solver.SolverConfig(refine=True)
     argmax, refined = [], []
     for s in range(0, NUM_POSES, 8):  # 200 = 25 batches of 8: one compiled shape
-        out = solver.localize(solver.labels_to_logits(bev[s : s + 8]), tile[s : s + 8], cfg)
+        out = solver.localize(
+            solver.labels_to_logits(bev[s : s + 8]), tile[s : s + 8], cfg, return_volume=True
+        )
         coarse = solver.decode(out["volume"], refine=False)
         argmax.append(solver.tile_pose_to_world(coarse, centre[s : s + 8]))
         refined.append(solver.tile_pose_to_world(out["pose_tile"], centre[s : s + 8]))

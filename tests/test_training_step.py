@@ -96,7 +96,7 @@ def test_corrupt_latest_checkpoint_falls_back(tmp_path, capsys):
     target = st.TrainState.create(_init(), st.make_optimizer(CFG), jax.random.key(1))
     _, data_state, step = ck.restore_latest(target)
     assert step == 1 and data_state == {"i": 1}
-    assert "could not be restored" in capsys.readouterr().out
+    assert "is corrupt or incomplete" in capsys.readouterr().out
 
 
 def test_missing_checkpoint_is_a_clear_error(tmp_path):
@@ -153,7 +153,7 @@ def test_checkpoint_path_with_brackets_is_refused_up_front(tmp_path):
 
 
 def test_sweep_directory_names_drop_brackets():
-    from seglocnet_jax.hydra_app import safe_dirname
+    from seglocnet_jax.app.hydra_glue import safe_dirname
 
     name = "eval.splits=[test],map.channels=[road,building],map.road_width=5"
     assert safe_dirname(name) == "eval.splits=test,map.channels=road+building,map.road_width=5"

@@ -35,6 +35,29 @@ PRIOR_RANGE = 32.0  # metres: prior = GT + U[-PRIOR_RANGE, PRIOR_RANGE] per axis
 NUM_ROTATIONS = 256  # paper's K
 
 
+# Functions that take arrays dispatch on their type (one function, no NumPy/JAX twins): JAX
+# arrays (and tracers, so they jit) stay in jax.numpy and its dtypes; everything else is NumPy
+# in float64.
+
+
+def _xp(*arrays):
+    """``jax.numpy`` if any of ``arrays`` is a JAX array or tracer, else ``numpy``."""
+    for a in arrays:
+        if type(a).__module__.startswith("jax"):
+            import jax.numpy as jnp
+
+            return jnp
+    return np
+
+
+def _float(a, xp):
+    """``a`` as a float array: float64 NumPy, or JAX's default float (float32 without x64)."""
+    if xp is np:
+        return np.asarray(a, np.float64)
+    a = xp.asarray(a)
+    return a if xp.issubdtype(a.dtype, xp.floating) else a.astype(float)
+
+
 def wrap_angle(a):
     """Wraps radians to ``(-pi, pi]`` (NumPy or JAX arrays, or floats)."""
     xp = _xp(a)
@@ -44,16 +67,14 @@ def wrap_angle(a):
 
 def angle_error(a, b):
     """Absolute wrapped difference of two angles, radians in ``[0, pi]``."""
-    return _xp(a).abs(wrap_angle(a - b))
+    return _xp(a, b).abs(wrap_angle(a - b))
 
 
-def _xp(a):
-    mod = type(a).__module__
-    if mod.startswith("jax"):
-        import jax.numpy as jnp
-
-        return jnp
-    return np
+def sample_priors(xy, rng: np.random.Generator, prior_range: float = PRIOR_RANGE) -> np.ndarray:
+    """Coarse position priors: ``xy + U[-prior_range, prior_range]`` per axis, metres, of the
+    shape of ``xy`` (``(2,)`` or ``(N, 2)``); draws ``xy.size`` uniforms from ``rng``."""
+    xy = np.asarray(xy, np.float64)
+    return xy + rng.uniform(-prior_range, prior_range, size=xy.shape)
 
 
 # --------------------------------------------------------------------------- raster grids
@@ -134,25 +155,42 @@ def tile_window(grid: RasterGrid, x, y, size: int = TILE_SIZE):
     return row_c - size // 2, col_c - size // 2, cx, cy
 
 
+def crop(array: np.ndarray, row0: int, col0: int, size: int) -> np.ndarray:
+    """The ``size x size`` window of ``array (..., H, W)`` whose top-left pixel is ``(row0,
+    col0)`` (a copy, ``(..., size, size)``); zero where the window leaves the array."""
+    row0, col0 = int(row0), int(col0)
+    h, w = array.shape[-2:]
+    r0, r1 = max(row0, 0), min(row0 + size, h)
+    c0, c1 = max(col0, 0), min(col0 + size, w)
+    if (r0, c0, r1, c1) == (row0, col0, row0 + size, col0 + size):
+        return array[..., r0:r1, c0:c1].copy()
+    out = np.zeros((*array.shape[:-2], size, size), array.dtype)
+    if r1 > r0 and c1 > c0:
+        out[..., r0 - row0 : r1 - row0, c0 - col0 : c1 - col0] = array[..., r0:r1, c0:c1]
+    return out
+
+
 # --------------------------------------------------------------------------- poses and frames
 
 
 def ego_to_world(pose, points):
-    """Ego-frame points ``(..., 2)`` (forward, left) of ``pose`` to world ``(..., 2)``."""
-    pose = np.asarray(pose, np.float64)
-    points = np.asarray(points, np.float64)
-    c, s = np.cos(pose[2]), np.sin(pose[2])
+    """Ego-frame points ``(..., 2)`` (forward, left) of ``pose`` to world ``(..., 2)`` (NumPy
+    or JAX)."""
+    xp = _xp(pose, points)
+    pose, points = _float(pose, xp), _float(points, xp)
+    c, s = xp.cos(pose[2]), xp.sin(pose[2])
     f, l = points[..., 0], points[..., 1]
-    return np.stack([pose[0] + c * f - s * l, pose[1] + s * f + c * l], axis=-1)
+    return xp.stack([pose[0] + c * f - s * l, pose[1] + s * f + c * l], axis=-1)
 
 
 def world_to_ego(pose, points):
-    """World points ``(..., 2)`` to the ego frame ``(..., 2)`` (forward, left) of ``pose``."""
-    pose = np.asarray(pose, np.float64)
-    points = np.asarray(points, np.float64)
-    c, s = np.cos(pose[2]), np.sin(pose[2])
+    """World points ``(..., 2)`` to the ego frame ``(..., 2)`` (forward, left) of ``pose``
+    (NumPy or JAX)."""
+    xp = _xp(pose, points)
+    pose, points = _float(pose, xp), _float(points, xp)
+    c, s = xp.cos(pose[2]), xp.sin(pose[2])
     dx, dy = points[..., 0] - pose[0], points[..., 1] - pose[1]
-    return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=-1)
+    return xp.stack([c * dx + s * dy, -s * dx + c * dy], axis=-1)
 
 
 def pose_from_matrix(world_from_ego) -> np.ndarray:
@@ -175,8 +213,9 @@ def bev_cell_centers_ego(size: int = BEV_SIZE, resolution: float = RESOLUTION) -
 
 
 def ego_to_bev_pixel(points, size: int = BEV_SIZE, resolution: float = RESOLUTION):
-    """Ego ``(..., 2)`` (forward, left) metres to continuous BEV ``(row, col)``."""
-    points = np.asarray(points)
+    """Ego ``(..., 2)`` (forward, left) metres to continuous BEV ``(row, col)`` (NumPy or JAX)."""
+    xp = _xp(points)
+    points = xp.asarray(points)
     row = size / 2 - points[..., 0] / resolution
     col = size / 2 - points[..., 1] / resolution
     return row, col
@@ -187,19 +226,21 @@ def ego_to_bev_pixel(points, size: int = BEV_SIZE, resolution: float = RESOLUTIO
 
 def rotation_angle(k, num_rotations: int):
     """Counterclockwise turn (radians) that solver rotation ``k`` applies to the BEV image."""
-    return 2 * math.pi * np.asarray(k) / num_rotations
+    xp = _xp(k)
+    return 2 * math.pi * _float(k, xp) / num_rotations
 
 
 def yaw_from_rotation(k, num_rotations: int):
     """The vehicle yaw (radians, wrapped) that solver rotation index ``k`` (may be fractional)
     stands for."""
-    return wrap_angle(math.pi / 2 + 2 * math.pi * np.asarray(k, np.float64) / num_rotations)
+    return wrap_angle(math.pi / 2 + rotation_angle(k, num_rotations))
 
 
 def rotation_from_yaw(yaw, num_rotations: int):
     """Continuous rotation index in ``[0, K)`` for a vehicle yaw; round it for the GT bin."""
-    k = (np.asarray(yaw, np.float64) - math.pi / 2) / (2 * math.pi) * num_rotations
-    return np.mod(k, num_rotations)
+    xp = _xp(yaw)
+    k = (_float(yaw, xp) - math.pi / 2) / (2 * math.pi) * num_rotations
+    return xp.mod(k, num_rotations)
 
 
 def cell_to_tile_offset(
@@ -207,9 +248,10 @@ def cell_to_tile_offset(
 ):
     """Score cell ``(h, w)`` (may be fractional) to the ego position relative to the tile
     centre, ``(dx east, dy north)`` metres."""
+    xp = _xp(h, w)
     centre = (tile_size - bev_size) / 2  # the cell whose ego point is the tile centre (64)
-    dx = (np.asarray(w, np.float64) - centre) * resolution
-    dy = -(np.asarray(h, np.float64) - centre) * resolution
+    dx = (_float(w, xp) - centre) * resolution
+    dy = -(_float(h, xp) - centre) * resolution
     return dx, dy
 
 
@@ -217,7 +259,32 @@ def tile_offset_to_cell(
     dx, dy, resolution: float = RESOLUTION, bev_size: int = BEV_SIZE, tile_size: int = TILE_SIZE
 ):
     """Inverse of :func:`cell_to_tile_offset`: continuous ``(h, w)``."""
+    xp = _xp(dx, dy)
     centre = (tile_size - bev_size) / 2
-    w = np.asarray(dx, np.float64) / resolution + centre
-    h = -np.asarray(dy, np.float64) / resolution + centre
+    w = _float(dx, xp) / resolution + centre
+    h = -_float(dy, xp) / resolution + centre
     return h, w
+
+
+def cell_to_pose(cell, num_rotations: int, size: int = SCORE_SIZE, bev_size: int = BEV_SIZE):
+    """``(..., 3)`` score cells ``(k, h, w)`` (may be fractional) of a ``(K, size, size)``
+    volume to tile-frame poses ``(dx, dy, yaw)`` (m, m, rad); NumPy or JAX (jit-friendly)."""
+    xp = _xp(cell)
+    cell = _float(cell, xp)
+    tile_size = size - 1 + bev_size
+    dx, dy = cell_to_tile_offset(cell[..., 1], cell[..., 2], bev_size=bev_size, tile_size=tile_size)
+    yaw = yaw_from_rotation(cell[..., 0], num_rotations)
+    return xp.stack([dx, dy, yaw], axis=-1)
+
+
+def pose_to_cell(pose_tile, num_rotations: int, size: int = SCORE_SIZE, bev_size: int = BEV_SIZE):
+    """Inverse of :func:`cell_to_pose`: continuous ``(..., 3)`` cells ``(k in [0, K), h, w)``;
+    round for the GT cell."""
+    xp = _xp(pose_tile)
+    pose_tile = _float(pose_tile, xp)
+    tile_size = size - 1 + bev_size
+    h, w = tile_offset_to_cell(
+        pose_tile[..., 0], pose_tile[..., 1], bev_size=bev_size, tile_size=tile_size
+    )
+    k = rotation_from_yaw(pose_tile[..., 2], num_rotations)
+    return xp.stack([k, h, w], axis=-1)

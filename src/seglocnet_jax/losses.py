@@ -8,7 +8,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from seglocnet_jax import solver
+from seglocnet_jax import geometry
 
 
 def sigmoid_focal_loss(
@@ -42,10 +42,10 @@ def sigmoid_focal_loss(
 
 
 def gt_cells(pose_tile: jax.Array, num_rotations: int, size: int) -> jax.Array:
-    """Integer GT cells ``(B, 3)`` = ``(k, h, w)`` of tile-frame poses ``(B, 3)``; the solver's
-    jit-friendly twin of ``geometry.tile_offset_to_cell`` / ``geometry.rotation_from_yaw``,
-    rounded, k wrapped into [0, K), h and w clipped to the volume."""
-    cell = solver.pose_to_cell(pose_tile.astype(jnp.float32), num_rotations, size=size)
+    """Integer GT cells ``(B, 3)`` = ``(k, h, w)`` of tile-frame poses ``(B, 3)``:
+    :func:`geometry.pose_to_cell` rounded, k wrapped into [0, K), h and w clipped to the
+    volume."""
+    cell = geometry.pose_to_cell(pose_tile.astype(jnp.float32), num_rotations, size=size)
     cell = jnp.round(cell).astype(jnp.int32)
     k = jnp.mod(cell[:, 0], num_rotations)
     hw = jnp.clip(cell[:, 1:], 0, size - 1)

@@ -7,8 +7,8 @@ The score volume (``geometry`` owns what its cells mean)::
 where ``F'[:, k]`` is the BEV (``(C, 128, 128)``, forward = up) turned counterclockwise as
 displayed by ``2 pi k / K`` about the ego point (the pixel corner at ``(64, 64)``), bilinear with
 zeros outside; multiples of 90 degrees are exact ``rot90``s. ``T`` is the ``(C, 256, 256)`` tile.
-Cell ``(k, h, w)`` stands for the tile-frame pose given by :func:`geometry.yaw_from_rotation`
-and :func:`geometry.cell_to_tile_offset`.
+Cell ``(k, h, w)`` stands for the tile-frame pose given by :func:`geometry.cell_to_pose`
+(:func:`geometry.pose_to_cell` is its inverse).
 
 Two methods compute ``M``: ``"conv"`` (``lax.conv_general_dilated``, the reference) and ``"fft"``
 (the default, ~100x less work). The FFT path uses that a 256-point transform holds the whole
@@ -41,7 +41,6 @@ class SolverConfig:
       num_rotations: K, rotation bins over the full turn; K % 4 == 0 (paper: 256).
       method: "fft" (default, fast) or "conv" (direct correlation, reference).
       refine: sub-cell refinement of the argmax by separable quadratic fits in h, w and k.
-      return_volume: whether :func:`localize` also returns the (B, K, 129, 129) score volume.
       rotation_chunk: fft templates transformed together (0: all K/4; see :func:`score_volume`).
       batch_chunk: samples vmapped together (0: the whole batch; see
         :func:`score_volume_batch`). The defaults are the fastest on CPU; use 0 and 0 on GPU.
@@ -50,7 +49,6 @@ class SolverConfig:
     num_rotations: int = geometry.NUM_ROTATIONS
     method: str = "fft"
     refine: bool = True
-    return_volume: bool = False
     rotation_chunk: int = 2
     batch_chunk: int = 1
 
@@ -286,49 +284,24 @@ def decode_cell(volume: jax.Array, refine: bool = True) -> tuple[jax.Array, jax.
     return cell + jnp.stack([dk, dh, dw]), peak
 
 
-def _cell_affine(num_rotations: int, size: int):
-    """Coefficients of the affine cell -> pose map, read off :mod:`geometry` (its only owner).
-
-    ``size`` is the volume's H = W; the offset depends only on ``tile - bev = size - 1``.
-    """
-    bev_size = geometry.BEV_SIZE
-    tile_size = size - 1 + bev_size
-    dx0, dy0 = geometry.cell_to_tile_offset(0, 0, bev_size=bev_size, tile_size=tile_size)
-    dx1, dy1 = geometry.cell_to_tile_offset(1, 1, bev_size=bev_size, tile_size=tile_size)
-    yaw0 = float(geometry.yaw_from_rotation(0, num_rotations))
-    step = float(geometry.rotation_angle(1, num_rotations))
-    return float(dx0), float(dx1 - dx0), float(dy0), float(dy1 - dy0), yaw0, step
-
-
-def cell_to_pose(cell: jax.Array, num_rotations: int, size: int = geometry.SCORE_SIZE):
-    """``(..., 3)`` cells ``(k, h, w)`` to tile-frame poses ``(dx, dy, yaw)`` (m, m, rad);
-    jit-friendly twin of ``geometry.cell_to_tile_offset`` / ``geometry.yaw_from_rotation``."""
-    dx0, ax, dy0, ay, yaw0, step = _cell_affine(num_rotations, size)
-    k, h, w = cell[..., 0], cell[..., 1], cell[..., 2]
-    yaw = geometry.wrap_angle(yaw0 + step * k)
-    return jnp.stack([dx0 + ax * w, dy0 + ay * h, yaw], axis=-1)
-
-
-def pose_to_cell(pose_tile: jax.Array, num_rotations: int, size: int = geometry.SCORE_SIZE):
-    """Inverse of :func:`cell_to_pose`: continuous ``(k in [0, K), h, w)``; round for the GT
-    cell."""
-    dx0, ax, dy0, ay, yaw0, step = _cell_affine(num_rotations, size)
-    dx, dy, yaw = pose_tile[..., 0], pose_tile[..., 1], pose_tile[..., 2]
-    k = jnp.mod((yaw - yaw0) / step, num_rotations)
-    return jnp.stack([k, (dy - dy0) / ay, (dx - dx0) / ax], axis=-1)
-
-
 def decode(volume: jax.Array, num_rotations: int | None = None, refine: bool = True):
     """Best pose in the tile frame ``(..., 3)`` = ``(dx, dy, yaw)`` (m, m, rad) of
     ``(..., K, H, W)`` score volumes; ``num_rotations`` defaults to the volume's K."""
     num_rotations = num_rotations or volume.shape[-3]
     cell, _ = decode_cell(volume, refine=refine)
-    return cell_to_pose(cell, num_rotations, size=volume.shape[-1])
+    return geometry.cell_to_pose(cell, num_rotations, size=volume.shape[-1])
 
 
-@functools.partial(jax.jit, static_argnames=("cfg",))
-def localize(bev_logits: jax.Array, tiles: jax.Array, cfg: SolverConfig = SolverConfig()):
-    """Solves a batch: the network's evaluation path and the GT upper bound both call this.
+@functools.partial(jax.jit, static_argnames=("cfg", "return_volume"))
+def localize(
+    bev_logits: jax.Array,
+    tiles: jax.Array,
+    cfg: SolverConfig = SolverConfig(),
+    *,
+    return_volume: bool = False,
+):
+    """Solves a batch (inside :func:`seglocnet_jax.evaluation.make_localize_step` for every
+    evaluation).
 
     Args:
       bev_logits: ``(B, C, 128, 128)`` BEV logits (or :func:`labels_to_logits` of labels).
@@ -338,18 +311,18 @@ def localize(bev_logits: jax.Array, tiles: jax.Array, cfg: SolverConfig = Solver
     Returns:
       dict with ``pose_tile (B, 3)`` (dx, dy, yaw) in the tile frame, ``cell (B, 3)`` the
       (possibly refined) ``(k, h, w)``, ``score (B,)`` the peak raw score, and ``volume
-      (B, K, 129, 129)`` when ``cfg.return_volume``.
+      (B, K, 129, 129)`` when ``return_volume``.
     """
     volume = score_volume_batch(
         bev_logits, tiles, cfg.num_rotations, cfg.method, cfg.rotation_chunk, cfg.batch_chunk
     )
     cell, peak = decode_cell(volume, refine=cfg.refine)
     out = {
-        "pose_tile": cell_to_pose(cell, cfg.num_rotations, size=volume.shape[-1]),
+        "pose_tile": geometry.cell_to_pose(cell, cfg.num_rotations, size=volume.shape[-1]),
         "cell": cell,
         "score": peak,
     }
-    if cfg.return_volume:
+    if return_volume:
         out["volume"] = volume
     return out
 
@@ -370,8 +343,6 @@ __all__ = [
     "log_softmax_volume",
     "labels_to_logits",
     "decode_cell",
-    "cell_to_pose",
-    "pose_to_cell",
     "decode",
     "localize",
     "tile_pose_to_world",

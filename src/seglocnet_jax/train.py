@@ -1,24 +1,24 @@
 """``python -m seglocnet_jax.train [+exp=NAME] [overrides]``: train, validate, checkpoint,
-resume, and print the paper-style table of the test split(s). Logic: ``training.loop``."""
+resume, and print the paper-style table of the final splits. Logic: ``app.train_run``."""
 
 import hydra
 from omegaconf import DictConfig
 
-from seglocnet_jax import hydra_app
+from seglocnet_jax.app import hydra_glue
 
-hydra_app.register_resolvers()
+hydra_glue.register_resolvers()
 
 
-@hydra.main(version_base="1.3", config_path=hydra_app.conf_dir(), config_name="config")
+@hydra.main(version_base="1.3", config_path=hydra_glue.conf_dir(), config_name="config")
 def main(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
-    from seglocnet_jax.experiment import build_experiment
-    from seglocnet_jax.training.loop import train_and_evaluate
+    from seglocnet_jax.app.schema import build_experiment
+    from seglocnet_jax.app.train_run import train_and_evaluate
 
-    hydra_app.quiet_library_logs()
-    hydra_app.maybe_initialize_distributed()
-    exp = build_experiment(hydra_app.to_tree(cfg))
+    hydra_glue.quiet_library_logs()
+    hydra_glue.maybe_initialize_distributed()
+    exp = build_experiment(hydra_glue.to_tree(cfg))
     train_and_evaluate(exp, HydraConfig.get().runtime.output_dir)
 
 

@@ -16,18 +16,19 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from seglocnet_jax import geometry  # noqa: E402
-
-# Channel colours (RGB in [0, 1]) by channel name.
-CHANNEL_COLORS = {"road": (0.35, 0.45, 0.85), "building": (0.85, 0.3, 0.25)}
+from seglocnet_jax.maps.render import COLOURS  # noqa: E402
 
 
 def color_mask(mask: np.ndarray, channels=("road", "building")) -> np.ndarray:
-    """``(C, H, W)`` values in [0, 1] (labels or probabilities) to an ``(H, W, 3)`` image on
-    white; later channels are drawn over earlier ones."""
+    """``(C, H, W)`` values in [0, 1] (labels or probabilities) to an ``(H, W, 3)`` float image
+    on white in the project's mask palette (:data:`seglocnet_jax.maps.render.COLOURS`); later
+    channels are drawn over earlier ones. An unknown channel name raises ``KeyError``."""
     rgb = np.ones(mask.shape[1:] + (3,), np.float32)
     for c, name in enumerate(channels):
+        if name not in COLOURS:
+            raise KeyError(f"no colour for channel {name!r}; known channels: {sorted(COLOURS)}")
         alpha = np.clip(np.asarray(mask[c], np.float32), 0, 1)[..., None]
-        color = np.asarray(CHANNEL_COLORS.get(name, (0.3, 0.7, 0.3)), np.float32)
+        color = np.asarray(COLOURS[name], np.float32) / 255.0
         rgb = rgb * (1 - alpha) + color * alpha
     return rgb
 

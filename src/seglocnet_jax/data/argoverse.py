@@ -37,7 +37,6 @@ import numpy as np
 import pyarrow.feather as feather
 import shapely
 from shapely.geometry import Polygon
-from tqdm.auto import tqdm
 
 from seglocnet_jax.data import real_common as rc
 from seglocnet_jax.maps.projection import Projection
@@ -274,29 +273,17 @@ class ArgoverseReader:
         xyz = np.stack([sweep[c] for c in ("x", "y", "z")], axis=1)
         lidar = rc.points_to_ego(xyz, sweep["intensity"], np.eye(4), 255.0)  # already ego frame
         ego_from_world = rc.invert_se3(log.world_from_ego(t, self._max_ns))
-        images, intrinsics, cam_to_ego = [], [], []
-        for cam in self.cfg.cameras:
-            tc = int(log.cam_t[cam][log.nearest(log.cam_t[cam], t, self._max_ns, f"{cam} image")])
-            image = rc.read_rgb(os.path.join(log_dir, "sensors", "cameras", cam, f"{tc}.jpg"))
-            image, k = rc.resize_camera(image, log.intrinsics[cam], self.cfg.image_size)
-            T = ego_from_world @ log.world_from_ego(tc, self._max_ns) @ log.ego_from_cam[cam]
-            images.append(image)
-            intrinsics.append(k)
-            cam_to_ego.append(T.astype(np.float32))
-        return {
-            "sample_id": frame.sample_id,
-            "city": log.city,
-            "pose": np.asarray(frame.pose, np.float64),
-            "images": np.stack(images),  # (N, H, W, 3)
-            "intrinsics": np.stack(intrinsics),  # (N, 3, 3)
-            "cam_to_ego": np.stack(cam_to_ego),  # (N, 4, 4)
-            "lidar": lidar,  # (P, 4)
-        }
 
-    def iter_samples(self, split: str):
-        """Sample dicts of a split, with a progress bar."""
-        for frame in tqdm(self.frames(split), desc=f"AV2 {split}", unit="frame"):
-            yield self.load(frame)
+        def views():
+            for cam in self.cfg.cameras:
+                i = log.nearest(log.cam_t[cam], t, self._max_ns, f"{cam} image")
+                tc = int(log.cam_t[cam][i])
+                path = os.path.join(log_dir, "sensors", "cameras", cam, f"{tc}.jpg")
+                # The ego frame at the LiDAR time, through the world, from the camera's time.
+                t_cam = ego_from_world @ log.world_from_ego(tc, self._max_ns)
+                yield path, log.intrinsics[cam], t_cam @ log.ego_from_cam[cam]
+
+        return rc.frame_sample(frame, views(), self.cfg.image_size, lidar)
 
     def drivable(self, city: str):
         """Union of the drivable areas of every loaded log in ``city`` (city-frame metres).

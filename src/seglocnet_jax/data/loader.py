@@ -6,6 +6,9 @@ the fly around the snapped prior and the GT BEV cut at the GT pose from the cach
 Evaluation: file order, the stored seeded priors, the last batch padded by repeating the last
 record (``valid`` marks real rows) so that every batch has the same shape.
 
+Opening a split checks each shard's size and SHA-256 against the manifest (hashed once per
+process and file version), so a shard that changed after it was written fails here, named.
+
 Everything is NumPy and deterministic for a seed; ``iter(loader)`` returns grain's iterator whose
 ``get_state()`` (a small JSON-able dict) / ``set_state()`` resume bit-identically.
 
@@ -23,7 +26,7 @@ import grain
 import numpy as np
 
 from seglocnet_jax import geometry
-from seglocnet_jax.data.manifest import read_manifest, split_files
+from seglocnet_jax.data.manifest import read_manifest, split_files, verify_split
 from seglocnet_jax.data.records import RecordError, count_records, decode_sample
 
 
@@ -220,6 +223,7 @@ def make_loader(
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     man = read_manifest(dataset_dir)
     files = split_files(man, dataset_dir, split)
+    verify_split(man, dataset_dir, split)  # size + SHA-256 per shard, once per process
     n = sum(c for _, c in files)
     if n == 0:
         raise RecordError(f"{dataset_dir}: split {split!r} has no records")

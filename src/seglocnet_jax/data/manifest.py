@@ -9,8 +9,14 @@ Layout of a dataset directory (all paths in the manifest are relative to it)::
 Manifest keys: ``format`` (``FORMAT``), ``manifest_version``, ``record_version``,
 ``code_version`` (package version), ``config`` (the preparation config as a plain dict; a resume
 or a loader with another config is refused), ``splits`` (split -> ``{"shards": [{"file",
-"count"}], "count", "cities": {city: count}}``), ``map_variants`` (variant -> ``{"config",
-"files": {city: path}}``) and ``complete`` (all shards written).
+"count", "sha256", "bytes"}], "count", "cities": {city: count}}``), ``map_variants`` (variant ->
+``{"config", "files": {city: path}}``) and ``complete`` (all shards written).
+
+Integrity: a shard's SHA-256 and size are recorded when it is written; the loader checks them
+before it reads a split (:func:`verify_split`). Shard ``i`` of ``n`` of split ``s`` is
+``sensors/<s>/<s>-<i>-of-<n>.array_record`` (:func:`records.shard_name`): a manifest whose split
+lists another file (another split's shard, or a file listed twice) is refused. Manifests of
+version 1 (before shard checksums) are refused with the remedy: prepare again.
 """
 
 from __future__ import annotations
@@ -19,11 +25,14 @@ import json
 import os
 from importlib import metadata
 
-from seglocnet_jax.data.records import RECORD_VERSION
+from seglocnet_jax import fileio
+from seglocnet_jax.data.records import RECORD_VERSION, shard_name, verify_shard
+from seglocnet_jax.fileio import write_json_atomic  # noqa: F401 - the map writers import it here
 
 FORMAT = "seglocnet_jax.dataset"
-MANIFEST_VERSION = 1
+MANIFEST_VERSION = 2  # 2: shard checksums ("sha256", "bytes")
 MANIFEST_NAME = "manifest.json"
+CHECKSUM_KEYS = ("sha256", "bytes")
 
 
 class ManifestError(ValueError):
@@ -52,26 +61,69 @@ def new_manifest(config: dict, splits: dict) -> dict:
     }
 
 
-def write_json_atomic(path: str | os.PathLike, obj) -> None:
-    """Writes ``obj`` as JSON to ``path`` via a temporary file and ``os.replace``."""
-    path = os.fspath(path)
-    tmp = f"{path}.tmp-{os.getpid()}"
-    try:
-        with open(tmp, "w") as f:
-            json.dump(obj, f, indent=1, sort_keys=True)
-            f.write("\n")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-
-
 def manifest_path(dataset_dir: str | os.PathLike) -> str:
     return os.path.join(os.fspath(dataset_dir), MANIFEST_NAME)
 
 
+def write_manifest(dataset_dir: str | os.PathLike, man: dict) -> None:
+    """Writes ``<dataset_dir>/manifest.json`` atomically."""
+    fileio.write_json_atomic(manifest_path(dataset_dir), man)
+
+
+def strip_checksums(splits: dict) -> dict:
+    """``splits`` without the shard checksums (to compare a plan with a stored manifest)."""
+    return {
+        name: dict(
+            split,
+            shards=[
+                {k: v for k, v in s.items() if k not in CHECKSUM_KEYS} for s in split["shards"]
+            ],
+        )
+        for name, split in splits.items()
+    }
+
+
+def check_splits(man: dict, path: str) -> None:
+    """Every split lists its own shards (``sensors/<split>/<split>-i-of-n``), each once in the
+    whole manifest, with a record count; a complete manifest records every shard's checksum."""
+    splits = man["splits"]
+    if not isinstance(splits, dict):
+        raise ManifestError(f"{path}: 'splits' must be a mapping, got {type(splits).__name__}")
+    owner: dict[str, str] = {}
+    for name, split in splits.items():
+        shards = split.get("shards") if isinstance(split, dict) else None
+        if not isinstance(shards, list):
+            raise ManifestError(f"{path}: split {name!r} lacks a 'shards' list")
+        for i, entry in enumerate(shards):
+            file = entry.get("file") if isinstance(entry, dict) else None
+            if not isinstance(file, str) or not isinstance(entry.get("count"), int):
+                raise ManifestError(
+                    f"{path}: split {name!r} shard {i} must have 'file' (str) and 'count' "
+                    f"(int), got {entry!r}"
+                )
+            norm = os.path.normpath(file)
+            if norm in owner:
+                raise ManifestError(
+                    f"{path}: split {name!r} lists {file}, which split {owner[norm]!r} lists "
+                    "too; a shard belongs to one split (was the manifest edited?)"
+                )
+            owner[norm] = name
+            want = f"sensors/{name}/{shard_name(name, i, len(shards))}"
+            if file != want:
+                raise ManifestError(
+                    f"{path}: split {name!r} lists {file} as its shard {i}, expected {want}; a "
+                    "split reads only its own shards (was the manifest edited?)"
+                )
+            if man.get("complete") and not all(k in entry for k in CHECKSUM_KEYS):
+                raise ManifestError(
+                    f"{path}: split {name!r} shard {file} has no checksum although the dataset "
+                    "is marked complete; prepare the dataset again into a new directory"
+                )
+
+
 def read_manifest(dataset_dir: str | os.PathLike) -> dict:
-    """Reads and sanity-checks ``<dataset_dir>/manifest.json``."""
+    """Reads and sanity-checks ``<dataset_dir>/manifest.json`` (version, keys, and that every
+    split lists only its own shards)."""
     path = manifest_path(dataset_dir)
     if not os.path.isfile(path):
         raise ManifestError(f"{path}: no manifest; prepare the dataset first")
@@ -82,9 +134,18 @@ def read_manifest(dataset_dir: str | os.PathLike) -> dict:
         raise ManifestError(f"{path}: unreadable manifest ({err})") from err
     if not isinstance(man, dict) or man.get("format") != FORMAT:
         raise ManifestError(f"{path}: not a {FORMAT} manifest")
+    if man.get("manifest_version") == 1:
+        raise ManifestError(
+            f"{path}: this dataset was written before shards carried checksums "
+            f"(manifest_version 1; this code reads version {MANIFEST_VERSION}). Prepare it again "
+            f"into a new directory (another data.name or data.root) or delete "
+            f"{os.path.dirname(path)}"
+        )
     if man.get("manifest_version") != MANIFEST_VERSION:
         raise ManifestError(
-            f"{path}: manifest_version {man.get('manifest_version')}, expected {MANIFEST_VERSION}"
+            f"{path}: manifest_version {man.get('manifest_version')}, this code reads "
+            f"{MANIFEST_VERSION}; prepare the dataset again into a new directory or delete "
+            f"{os.path.dirname(path)}"
         )
     if man.get("record_version") != RECORD_VERSION:
         raise ManifestError(
@@ -94,6 +155,7 @@ def read_manifest(dataset_dir: str | os.PathLike) -> dict:
     for key in ("config", "splits", "map_variants", "complete"):
         if key not in man:
             raise ManifestError(f"{path}: manifest lacks key {key!r}")
+    check_splits(man, path)
     return man
 
 
@@ -137,3 +199,13 @@ def split_files(man: dict, dataset_dir: str | os.PathLike, split: str) -> list[t
     root = os.fspath(dataset_dir)
     shards = man["splits"][split]["shards"]
     return [(os.path.join(root, s["file"]), int(s["count"])) for s in shards]
+
+
+def verify_split(man: dict, dataset_dir: str | os.PathLike, split: str) -> None:
+    """Checks every shard of ``split`` against the size and SHA-256 the manifest records
+    (:func:`records.verify_shard`: hashed once per process and file version); a difference
+    raises :class:`records.RecordError` naming the shard and the manifest."""
+    split_files(man, dataset_dir, split)  # names a missing split
+    root = os.fspath(dataset_dir)
+    for entry in man["splits"][split]["shards"]:
+        verify_shard(os.path.join(root, entry["file"]), entry, manifest_path(dataset_dir))

@@ -23,7 +23,6 @@ import os
 import numpy as np
 import shapely
 from shapely.geometry import Polygon
-from tqdm.auto import tqdm
 
 from seglocnet_jax.data import real_common as rc
 from seglocnet_jax.maps.projection import Projection
@@ -243,34 +242,21 @@ class NuScenesReader:
         raw = raw.reshape(-1, 5)
         calib = self._calib[lidar_sd["calibrated_sensor_token"]]
         lidar = rc.points_to_ego(raw[:, :3], raw[:, 3], calib["ego_from_sensor"], 255.0)
-        images, intrinsics, cam_to_ego = [], [], []
-        for channel in self.cfg.cameras:
-            sd = self._sd(frame.key, channel)
-            calib = self._calib[sd["calibrated_sensor_token"]]
-            if calib["intrinsic"] is None:
-                raise rc.RealDataError(
-                    f"{self._table_dir}/calibrated_sensor.json: {channel} has no camera_intrinsic"
-                )
-            image = rc.read_rgb(os.path.join(self.cfg.dataroot, sd["filename"]))
-            image, k = rc.resize_camera(image, calib["intrinsic"], self.cfg.image_size)
-            t = ego_from_world @ self._world_from_ego(sd) @ calib["ego_from_sensor"]
-            images.append(image)
-            intrinsics.append(k)
-            cam_to_ego.append(t.astype(np.float32))
-        return {
-            "sample_id": frame.sample_id,
-            "city": frame.city,
-            "pose": np.asarray(frame.pose, np.float64),
-            "images": np.stack(images),  # (N, H, W, 3)
-            "intrinsics": np.stack(intrinsics),  # (N, 3, 3)
-            "cam_to_ego": np.stack(cam_to_ego),  # (N, 4, 4)
-            "lidar": lidar,  # (P, 4)
-        }
 
-    def iter_samples(self, split: str):
-        """Sample dicts of a split, with a progress bar."""
-        for frame in tqdm(self.frames(split), desc=f"nuScenes {split}", unit="sample"):
-            yield self.load(frame)
+        def views():
+            for channel in self.cfg.cameras:
+                sd = self._sd(frame.key, channel)
+                calib = self._calib[sd["calibrated_sensor_token"]]
+                if calib["intrinsic"] is None:
+                    raise rc.RealDataError(
+                        f"{self._table_dir}/calibrated_sensor.json: {channel} has no "
+                        "camera_intrinsic"
+                    )
+                path = os.path.join(self.cfg.dataroot, sd["filename"])
+                t = ego_from_world @ self._world_from_ego(sd) @ calib["ego_from_sensor"]
+                yield path, calib["intrinsic"], t
+
+        return rc.frame_sample(frame, views(), self.cfg.image_size, lidar)
 
     # ----------------------------------------------------------------------- maps
 

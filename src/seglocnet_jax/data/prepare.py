@@ -23,16 +23,19 @@ from typing import Protocol
 import numpy as np
 from tqdm.auto import tqdm
 
+from seglocnet_jax import fileio
 from seglocnet_jax.data import manifest as mf
 from seglocnet_jax.data import splits as sp
 from seglocnet_jax.data.records import (
     RecordError,
     count_records,
     encode_sample,
+    file_checksum,
     shard_name,
     write_shard,
 )
-from seglocnet_jax.data.variants import VariantConfig, ensure_variant
+from seglocnet_jax.data.variants import ensure_variant
+from seglocnet_jax.maps import MapConfig, city_key
 
 
 class FrameSource(Protocol):
@@ -65,7 +68,7 @@ class PrepareConfig:
       png_level: PNG compression level of the stored images (lossless at any level).
       split: spatial split assignment (stripes + clearance).
       sim: simulator options, passed through to the frame source.
-      map_variants: map variants rasterized after the sensors (``variants.VariantConfig`` dicts).
+      map_variants: map variants rasterized after the sensors (``maps.MapConfig`` dicts).
     """
 
     name: str = "sim_quick"
@@ -90,7 +93,7 @@ class PrepareConfig:
     def __post_init__(self):
         for i, spec in enumerate(self.map_variants):
             try:
-                VariantConfig(**spec)
+                MapConfig(**spec)
             except (TypeError, ValueError) as err:
                 raise ValueError(f"data.map_variants[{i}] = {spec!r}: {err}") from err
         counts = (self.num_train, self.num_val, self.num_test, self.num_test_city)
@@ -154,7 +157,7 @@ def plan_main_city(source: FrameSource, cfg: PrepareConfig) -> list[SplitPlan]:
         idx = avail[name][sp.select_evenly(len(avail[name]), want[name])]
         poses = pool[idx]
         priors = sp.seeded_priors(poses[:, :2], cfg.seed, stream)
-        plans.append(SplitPlan(name, cfg.city, poses, priors))
+        plans.append(SplitPlan(name, city_key(cfg.city), poses, priors))
     sp.check_disjoint({p.name: p.poses[:, :2] for p in plans})
     return plans
 
@@ -165,7 +168,8 @@ def plan_test_city(source: FrameSource, cfg: PrepareConfig) -> SplitPlan:
     pool = _drive_pool(source, cfg.seed, 1, 0, int(np.ceil(cfg.pool_factor * n)))
     poses = pool[sp.select_evenly(len(pool), n)]
     priors = sp.seeded_priors(poses[:, :2], cfg.seed, 3)
-    return SplitPlan(cfg.test_city, cfg.test_city, poses, priors)
+    key = city_key(cfg.test_city)  # split and city named by the key (a path is no name)
+    return SplitPlan(key, key, poses, priors)
 
 
 def _planned_splits(plans: list[SplitPlan], shard_size: int) -> dict:
@@ -195,8 +199,9 @@ def write_plan(
 ) -> int:
     """Renders and writes the missing shards of one split; returns how many were written.
 
-    Existing shards are kept after checking their record count (a mismatch raises and leaves
-    the file alone).
+    Each shard's checksum (``sha256``, ``bytes``) is recorded in its ``split_entry`` shard entry.
+    Existing shards are kept after checking their record count and, where the entry records
+    one, their checksum (a mismatch raises and leaves the file alone).
     """
     written = 0
     for shard_idx, entry in enumerate(split_entry["shards"]):
@@ -210,6 +215,14 @@ def write_plan(
                     f"{path}: existing shard has {n} records, expected {entry['count']}; "
                     "delete it to have it written again"
                 )
+            checksum = file_checksum(path)
+            if "sha256" in entry and {k: entry.get(k) for k in mf.CHECKSUM_KEYS} != checksum:
+                raise RecordError(
+                    f"{path}: existing shard differs from the checksum recorded in "
+                    f"{mf.manifest_path(dataset_dir)} (it changed after it was written); "
+                    "delete it to have it written again"
+                )
+            entry.update(checksum)
             if progress is not None:
                 progress.update(stop - start)
             continue
@@ -223,6 +236,7 @@ def write_plan(
             for i, sample in enumerate(samples, start=b0):
                 sample = dict(
                     sample,
+                    city=plan.city,  # the city key, whatever the source calls the city
                     sample_id=f"{plan.city}-{plan.name}-{i:06d}",
                     prior=np.asarray(plan.priors[i], np.float64),
                 )
@@ -233,7 +247,7 @@ def write_plan(
                 )
             if progress is not None:
                 progress.update(b1 - b0)
-        write_shard(path, records)
+        entry.update(write_shard(path, records))
         written += 1
     return written
 
@@ -251,10 +265,63 @@ def prepare(
     """Prepares (or resumes, or just checks) ``<cfg.root>/<cfg.name>``; returns that directory.
 
     ``source_factory(city) -> FrameSource`` defaults to the simulator. ``variants`` (a sequence
-    of ``variants.VariantConfig``; None: those of ``cfg.map_variants``) are rasterized afterwards
+    of ``maps.MapConfig``; None: those of ``cfg.map_variants``) are rasterized afterwards
     unless already stored (:mod:`.variants`).
+
+    Holds ``fileio.DirLock(<dataset dir>)`` throughout (a second preparation of the same
+    directory fails with :class:`fileio.LockError` naming the holder; a lock left by a killed
+    process is taken over with a note) and first removes temporary files of killed runs. A
+    dataset that needs no writing (complete, every variant stored) is checked without the lock
+    when another process holds it or the directory cannot be locked (read-only).
     """
     dataset_dir = os.path.join(cfg.root, cfg.name)
+    if cfg.source != "sim" and source_factory is None:
+        mf.read_manifest(dataset_dir)  # a converter's: names a missing one before the lock
+    lock = fileio.DirLock(dataset_dir, what="data preparation")
+    try:
+        lock.acquire()
+    except (fileio.LockError, OSError) as err:  # another live preparation; a read-only dir
+        if not _nothing_to_write(cfg, dataset_dir, variants):
+            raise
+        print(f"note: {dataset_dir} is complete; checking it without the lock ({err})", flush=True)
+        return _prepare(cfg, dataset_dir, source_factory, variants)
+    try:
+        if lock.previous:
+            print(
+                f"note: {dataset_dir}: took over the lock of a {lock.previous.get('what', 'run')}"
+                f" that is gone (pid {lock.previous.get('pid')} on {lock.previous.get('host')})",
+                flush=True,
+            )
+        fileio.clean_stale_tmp(dataset_dir)
+        return _prepare(cfg, dataset_dir, source_factory, variants)
+    finally:
+        lock.release()
+
+
+def _nothing_to_write(cfg: PrepareConfig, dataset_dir: str, variants) -> bool:
+    """Whether the sensors are complete and every wanted map variant is stored (so that
+    :func:`_prepare` only reads and checks)."""
+    from seglocnet_jax.data.variants import variant_path
+
+    try:
+        man = mf.read_manifest(dataset_dir)
+        if variants is None:
+            variants = [MapConfig(**spec) for spec in cfg.map_variants]
+        keys = {c for s in man["splits"].values() for c in s["cities"]}
+        return (
+            man["complete"]
+            and all_shards_exist(man, dataset_dir)
+            and all(
+                v.name in man["map_variants"]
+                and all(os.path.exists(variant_path(dataset_dir, v.name, c)) for c in keys)
+                for v in variants
+            )
+        )
+    except (ValueError, OSError):  # ManifestError, VariantError, ...: not ready
+        return False
+
+
+def _prepare(cfg: PrepareConfig, dataset_dir: str, source_factory, variants) -> str:
     identity = cfg.identity()
     man = None
     if cfg.source != "sim" and source_factory is None:
@@ -272,21 +339,23 @@ def prepare(
         factory = default_source_factory(cfg)
     sources = {}
     if man is None or not man["complete"] or not all_shards_exist(man, dataset_dir):
-        sources[cfg.city] = factory(cfg.city)
-        plans = plan_main_city(sources[cfg.city], cfg)
+        sources[city_key(cfg.city)] = factory(cfg.city)  # by city key, as the manifest
+        plans = plan_main_city(sources[city_key(cfg.city)], cfg)
         if cfg.test_city:
-            sources[cfg.test_city] = factory(cfg.test_city)
-            plans.append(plan_test_city(sources[cfg.test_city], cfg))
+            sources[city_key(cfg.test_city)] = factory(cfg.test_city)
+            plans.append(plan_test_city(sources[city_key(cfg.test_city)], cfg))
         planned = _planned_splits(plans, cfg.shard_size)
         if man is None:
             os.makedirs(dataset_dir, exist_ok=True)
             man = mf.new_manifest(identity, planned)
-            mf.write_json_atomic(mf.manifest_path(dataset_dir), man)
-        elif man["splits"] != planned:
+            mf.write_manifest(dataset_dir, man)
+        elif mf.strip_checksums(man["splits"]) != planned:
             raise mf.ManifestError(
                 f"{mf.manifest_path(dataset_dir)}: planned shards differ from the stored ones "
                 "although the config matches (code changed?); prepare into a new directory"
             )
+        else:
+            planned = man["splits"]  # the plan, with the checksums of recorded shards
         total = sum(len(p.poses) for p in plans)
         with tqdm(total=total, desc=f"prepare {cfg.name}", unit="frame") as bar:
             for split_idx, plan in enumerate(plans):
@@ -299,10 +368,11 @@ def prepare(
                     split_idx,
                     bar,
                 )
+                mf.write_manifest(dataset_dir, man)  # the split's shard checksums
         man = dict(man, complete=True)
-        mf.write_json_atomic(mf.manifest_path(dataset_dir), man)
+        mf.write_manifest(dataset_dir, man)
     if variants is None:
-        variants = [VariantConfig(**spec) for spec in cfg.map_variants]
+        variants = [MapConfig(**spec) for spec in cfg.map_variants]
     for vcfg in variants:
         ensure_variant(dataset_dir, vcfg, factory, sources)
     return dataset_dir
@@ -310,12 +380,12 @@ def prepare(
 
 def prepare_for_training(
     cfg: PrepareConfig,
-    variant: VariantConfig,
+    variant: MapConfig,
     source_factory: Callable[[str], FrameSource] | None = None,
 ):
     """What the training app calls: prepares what is missing (sensors, ``cfg.map_variants`` and
     ``variant``) and returns ``(dataset_dir, variant name)`` for :func:`loader.make_loader`."""
-    wanted = [VariantConfig(**spec) for spec in cfg.map_variants]
+    wanted = [MapConfig(**spec) for spec in cfg.map_variants]
     if variant not in wanted:
         wanted.append(variant)
     return prepare(cfg, source_factory, variants=wanted), variant.name

@@ -130,6 +130,34 @@ def resize_camera(image: np.ndarray, intrinsics, size: tuple[int, int]):
     return np.ascontiguousarray(image, np.uint8), (scale @ k).astype(np.float32)
 
 
+def frame_sample(frame: Frame, views, image_size: tuple[int, int], lidar: np.ndarray) -> dict:
+    """The sample dict (``schema.SAMPLE_KEYS``) of ``frame``.
+
+    Args:
+      frame: the frame (``sample_id``, ``city``, ``pose``).
+      views: the cameras in output order, each ``(image path, (3, 3) intrinsics in the file's
+        pixels, (4, 4) cam_to_ego)``; an iterable, consumed one camera at a time (so a
+        generator may validate a camera before its image is read).
+      image_size: ``(H, W)`` stored image size; images are resized and intrinsics scaled.
+      lidar: ``(P, 4)`` float32 ego ``x, y, z, intensity``.
+    """
+    images, intrinsics, cam_to_ego = [], [], []
+    for path, k, t in views:
+        image, k = resize_camera(read_rgb(path), k, image_size)
+        images.append(image)
+        intrinsics.append(k)
+        cam_to_ego.append(np.asarray(t, np.float32))
+    return {
+        "sample_id": frame.sample_id,
+        "city": frame.city,
+        "pose": np.asarray(frame.pose, np.float64),
+        "images": np.stack(images),  # (N, H, W, 3)
+        "intrinsics": np.stack(intrinsics),  # (N, 3, 3)
+        "cam_to_ego": np.stack(cam_to_ego),  # (N, 4, 4)
+        "lidar": lidar,  # (P, 4)
+    }
+
+
 # --------------------------------------------------------------------------- poses
 
 

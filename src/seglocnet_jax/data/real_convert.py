@@ -23,8 +23,8 @@ from seglocnet_jax.data import manifest as mf
 from seglocnet_jax.data.real_align import AlignConfig
 from seglocnet_jax.data.real_common import Frame, RealDataError, RealReader
 from seglocnet_jax.data.schema import SAMPLE_KEYS
-from seglocnet_jax.data.variants import VariantConfig
 from seglocnet_jax.data.writer import DatasetWriter
+from seglocnet_jax.maps import MapConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,7 +42,7 @@ class ConvertConfig:
       osm: city -> user OSM extract (``.osm.pbf`` / ``.osm``): buildings and SD roads; a city
         without one gets HD variants from the drivable area alone only if ``channels`` has no
         building (else the error names ``dataset.convert.osm.<city>``).
-      map_variants: ``variants.VariantConfig`` dicts rasterized after the sensors.
+      map_variants: ``maps.MapConfig`` dicts rasterized after the sensors.
       align: the OSM -> dataset similarity correction fitted per city.
     """
 
@@ -153,13 +153,13 @@ def convert(reader: RealReader, cfg: ConvertConfig, *, variants: bool = True) ->
     return dataset_dir
 
 
-def convert_for_training(reader: RealReader, cfg: ConvertConfig, variant: VariantConfig):
+def convert_for_training(reader: RealReader, cfg: ConvertConfig, variant: MapConfig):
     """What a training app calls for a real dataset (twin of ``prepare.prepare_for_training``):
     converts what is missing, adds ``variant`` to the map variants, and returns
     ``(dataset_dir, variant name)`` for :func:`loader.make_loader`."""
     specs = [dict(v) for v in cfg.map_variants]
-    if variant not in [VariantConfig(**v) for v in specs]:
-        specs.append(dict(dataclasses.asdict(variant), channels=list(variant.channels)))
+    if variant not in [MapConfig(**v) for v in specs]:
+        specs.append(variant.to_dict())
     return convert(reader, dataclasses.replace(cfg, map_variants=tuple(specs))), variant.name
 
 

@@ -6,7 +6,8 @@ Argoverse UTM minus the city origin) and clipped to the drivable area's surround
 similarity correction (:mod:`.real_align`) is fitted once per city by correlating the dataset's
 drivable area with the OSM road raster, stored in the manifest (``alignment``) and applied to
 every OSM geometry. HD = drivable area + corrected OSM buildings; SD = corrected OSM centrelines
-buffered to ``road_width`` + buildings. Rasters land in ``maps/<variant>/<city>.npz`` and
+buffered to ``road_width`` + buildings. Rasters land in ``maps/<variant>/<city>.npz``
+(:func:`.variants.variant_path`: the dataset's city names are the keys) and
 ``manifest.map_variants`` exactly as :mod:`.variants` writes them, so the loader reads both the
 same way.
 """
@@ -19,11 +20,11 @@ import os
 import numpy as np
 from shapely import affinity
 
-from seglocnet_jax import geometry, maps
+from seglocnet_jax import fileio, geometry, maps
 from seglocnet_jax.data import manifest as mf
 from seglocnet_jax.data import real_align as ra
 from seglocnet_jax.data.real_common import RealDataError
-from seglocnet_jax.data.variants import VariantConfig, variant_path
+from seglocnet_jax.data.variants import variant_path
 
 # OSM is read this far (m) around the drivable area: a tile (64 m) around a prior (32 m) plus
 # the largest alignment shift must stay inside the map.
@@ -87,17 +88,6 @@ def apply_alignment(city: maps.CityGeometry, sim: ra.Similarity) -> maps.CityGeo
     return dataclasses.replace(city, roads=roads, buildings=buildings, bounds=bounds)
 
 
-def _save_atomic(raster: maps.CityRaster, path: str) -> None:
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    tmp = f"{path[:-4]}.tmp-{os.getpid()}.npz"
-    try:
-        raster.save(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-
-
 def ensure_real_variants(
     dataset_dir: str, reader, cfg, poses: dict | None = None, progress: bool = True
 ) -> dict:
@@ -123,7 +113,7 @@ def ensure_real_variants(
                 f"another config: {'; '.join(diff)}; use a new directory"
             )
     reports = dict((stored or {}).get("cities", {}))
-    vcfgs = [VariantConfig(**spec) for spec in cfg.map_variants]
+    vcfgs = [maps.MapConfig(**spec) for spec in cfg.map_variants]
     for city in cities:
         paths = {v.name: variant_path(dataset_dir, v.name, city) for v in vcfgs}
         osm_path = (cfg.osm or {}).get(city)
@@ -153,25 +143,18 @@ def ensure_real_variants(
                     f"map variant {v.name!r} of {city!r} needs OSM: set "
                     f"dataset.convert.osm.{city} to an .osm.pbf / .osm extract"
                 )
-            map_cfg = maps.MapConfig(
-                kind=v.kind, road_width=v.road_width, channels=tuple(v.channels)
-            )
-            raster = maps.rasterize(osm, map_cfg, drivable=drivable if v.kind == "hd" else None)
-            _save_atomic(raster, paths[v.name])
+            raster = maps.rasterize(osm, v, drivable=drivable if v.kind == "hd" else None)
+            raster.save(paths[v.name])  # atomic
             if poses is not None and city in poses and "road" in v.channels:
                 on_road = reports[city].setdefault("poses_on_road", {})
                 on_road[v.name] = drivable_fraction(raster, np.asarray(poses[city]))
         man = mf.read_manifest(dataset_dir)  # re-read: only our entries change
         man["alignment"] = {"config": align_cfg, "cities": reports}
         for v in vcfgs:
-            entry = man["map_variants"].setdefault(v.name, {"config": _plain(v), "files": {}})
+            entry = man["map_variants"].setdefault(v.name, {"config": v.to_dict(), "files": {}})
             entry["files"][city] = os.path.relpath(paths[v.name], dataset_dir)
-        mf.write_json_atomic(mf.manifest_path(dataset_dir), man)
+        fileio.write_json_atomic(mf.manifest_path(dataset_dir), man)
     return reports
-
-
-def _plain(vcfg: VariantConfig) -> dict:  # as variants.ensure_variant records it
-    return dict(dataclasses.asdict(vcfg), channels=list(vcfg.channels))
 
 
 def _plain_align(cfg: ra.AlignConfig) -> dict:

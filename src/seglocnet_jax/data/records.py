@@ -12,21 +12,26 @@ Record format, version ``RECORD_VERSION`` (a record is one frame, bytes):
 * Fields: the producer's sample (``schema.SAMPLE_KEYS``) plus ``EXTRA_KEYS`` (``prior``: the
   seeded world (x, y) prior in metres that evaluation uses).
 
-Shards are written under a temporary name and renamed when complete, so a shard path that exists
-is a finished shard. Integrity: riegeli hashes every chunk (corruption raises); a truncated file can
-open with zero records, so readers compare record counts with the manifest (:mod:`.manifest`).
+Shards are written under a temporary name and renamed when complete (:func:`fileio.atomic_path`),
+so a shard path that exists is a finished shard. Integrity: :func:`write_shard` returns the
+shard's SHA-256 and size, which the manifest records (:mod:`.manifest`), and readers check them
+(:func:`verify_shard`, once per process and file version) before reading; riegeli also hashes
+every chunk, and record counts are compared with the manifest.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
 import os
+import threading
 
 import msgpack
 import numpy as np
 from array_record.python.array_record_module import ArrayRecordReader, ArrayRecordWriter
 from PIL import Image
 
+from seglocnet_jax import fileio
 from seglocnet_jax.data.schema import SAMPLE_KEYS, SchemaError, check_sample
 
 MAGIC = b"SLR1"
@@ -135,22 +140,76 @@ def shard_name(split: str, index: int, count: int) -> str:
     return f"{split}-{index:05d}-of-{count:05d}{SHARD_SUFFIX}"
 
 
-def write_shard(path: str | os.PathLike, records: list[bytes]) -> None:
-    """Writes encoded ``records`` to an ArrayRecord shard atomically (temp name, then rename)."""
+_HASH_CHUNK = 1 << 20
+_verified: dict[str, tuple[int, int, str]] = {}  # realpath -> (size, mtime_ns, sha256) checked
+_verified_lock = threading.Lock()
+
+
+def file_checksum(path: str | os.PathLike) -> dict:
+    """``{"sha256": hex digest, "bytes": size}`` of a file (what the manifest records)."""
+    h = hashlib.sha256()
+    size = 0
+    with open(path, "rb") as f:
+        while chunk := f.read(_HASH_CHUNK):
+            h.update(chunk)
+            size += len(chunk)
+    return {"sha256": h.hexdigest(), "bytes": size}
+
+
+def write_shard(path: str | os.PathLike, records: list[bytes]) -> dict:
+    """Writes encoded ``records`` to an ArrayRecord shard atomically (temp name, then rename);
+    returns its :func:`file_checksum` for the manifest."""
     path = os.fspath(path)
-    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    tmp = f"{path}.tmp-{os.getpid()}"
-    try:
+    with fileio.atomic_path(path) as tmp:
         writer = ArrayRecordWriter(tmp, WRITER_OPTIONS)
-        for rec in records:
-            writer.write(rec)
-        if not writer.ok():
+        try:
+            for rec in records:
+                writer.write(rec)
+            ok = writer.ok()
+        finally:
+            writer.close()
+        if not ok:
             raise RecordError(f"{path}: ArrayRecord writer failed")
-        writer.close()
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        checksum = file_checksum(tmp)
+    return checksum
+
+
+def verify_shard(path: str | os.PathLike, entry: dict, manifest: str) -> None:
+    """Checks a shard file against its manifest ``entry`` (``sha256``, ``bytes``); raises
+    :class:`RecordError` naming the file and ``manifest`` on a difference. A file already
+    verified in this process with the same size and mtime is not hashed again."""
+    path = os.fspath(path)
+    want_sha, want_size = entry.get("sha256"), entry.get("bytes")
+    if not isinstance(want_sha, str) or not isinstance(want_size, int):
+        raise RecordError(
+            f"{path}: {manifest} records no checksum for this shard (preparation did not "
+            "finish); prepare the dataset again"
+        )
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise RecordError(f"{path}: shard file is missing (listed in {manifest})") from None
+    if st.st_size != want_size:
+        raise RecordError(
+            f"{path}: {st.st_size} bytes, {manifest} records {want_size} (truncated or "
+            "replaced shard?); prepare the dataset again into a new directory"
+        )
+    key = os.path.realpath(path)
+    stamp = (st.st_size, st.st_mtime_ns, want_sha)
+    with _verified_lock:
+        if _verified.get(key) == stamp:
+            return
+    got = file_checksum(path)["sha256"]
+    if got != want_sha:
+        raise RecordError(
+            f"{path}: SHA-256 {got[:16]}... differs from the {want_sha[:16]}... recorded in "
+            f"{manifest}: the shard changed after it was written (disk corruption or an edit); "
+            "prepare the dataset again into a new directory"
+        )
+    with _verified_lock:
+        _verified[key] = stamp
 
 
 def count_records(path: str | os.PathLike) -> int:

@@ -129,6 +129,4 @@ def seeded_priors(xy: np.ndarray, seed: int, stream: int) -> np.ndarray:
     ``stream`` separates splits (e.g. an index of the split name) so they draw independently.
     """
     xy = np.asarray(xy, np.float64).reshape(-1, 2)
-    rng = np.random.default_rng([seed, stream, 0x9A1])
-    r = geometry.PRIOR_RANGE
-    return xy + rng.uniform(-r, r, size=xy.shape)
+    return geometry.sample_priors(xy, np.random.default_rng([seed, stream, 0x9A1]))

@@ -1,124 +1,150 @@
 """Map variants of a prepared dataset: cached city rasters, one npz per city and variant.
 
-A variant (HD; SD with road width w; a channel set) is a rasterization of the cities' maps. It is
-stored once as ``maps/<variant>/<city>.npz`` and recorded in the manifest; sensors are never
-re-simulated for a new variant. Tiles and GT BEVs are cut on the fly from the cached raster by
-the loader instead of being stored per frame: cutting is a slice (tile) plus a nearest-neighbour
-gather (BEV), well under a millisecond, and the evaluation priors are stored, so the result is
-identical to stored tiles at a fraction of the disk (a 256x256x2 tile per frame and variant).
+A variant (:class:`seglocnet_jax.maps.MapConfig`: HD; SD with road width w; a channel set) is a
+rasterization of the cities' maps. It is stored once as ``maps/<variant name>/<city key>.npz``
+(:func:`variant_path`; the city key is :func:`seglocnet_jax.maps.city_key`) and recorded in the
+manifest; sensors are never re-simulated for a new variant. Tiles and GT BEVs are cut on the fly
+from the cached raster by the loader instead of being stored per frame: cutting is a slice (tile)
+plus a nearest-neighbour gather (BEV), well under a millisecond, and the evaluation priors are
+stored, so the result is identical to stored tiles at a fraction of the disk (a 256x256x2 tile
+per frame and variant).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from collections.abc import Callable
 
+from seglocnet_jax import fileio, maps
 from seglocnet_jax.data import manifest as mf
+from seglocnet_jax.maps import MapConfig
 
 
 class VariantError(ValueError):
     """A map variant is missing or inconsistent; the message names the variant and file."""
 
 
-@dataclasses.dataclass(frozen=True)
-class VariantConfig:
-    """One map variant: ``kind`` "hd" (drivable area + buildings) or "sd" (OSM centrelines
-    buffered to ``road_width`` metres + buildings), and the raster ``channels``."""
-
-    kind: str = "hd"
-    road_width: float = 10.0
-    channels: tuple[str, ...] = ("road", "building")
-
-    def __post_init__(self):
-        if self.kind not in ("hd", "sd"):
-            raise ValueError(f"map kind must be 'hd' or 'sd', got {self.kind!r}")
-        if self.kind == "sd" and not self.road_width > 0:
-            raise ValueError(f"road_width must be > 0 m for SD maps, got {self.road_width}")
-        if not self.channels:
-            raise ValueError("map channels must not be empty")
-
-    @property
-    def name(self) -> str:
-        """Directory name, e.g. ``hd_road-building`` or ``sd_w5_road-building``."""
-        width = f"_w{self.road_width:g}" if self.kind == "sd" else ""
-        return f"{self.kind}{width}_{'-'.join(self.channels)}"
+def _check_plain(what: str, value) -> None:
+    if (
+        not isinstance(value, str)
+        or value in ("", ".", "..")
+        or os.path.isabs(value)
+        or any(sep in value for sep in ("/", "\\", os.sep, os.altsep) if sep)
+    ):
+        hint = (
+            "; name a city by maps.city_key(city): 'helsinki', or '<file stem>-<hash>' for an "
+            "OSM file"
+            if what == "city"
+            else ""
+        )
+        raise VariantError(
+            f"{what} {value!r} is not a plain key (a name without path separators, not a "
+            f"path){hint}"
+        )
 
 
 def variant_path(dataset_dir: str | os.PathLike, variant: str, city: str) -> str:
+    """``<dataset_dir>/maps/<variant>/<city>.npz``; ``city`` must be a city key
+    (:func:`seglocnet_jax.maps.city_key`), never a path: :class:`VariantError` otherwise."""
+    _check_plain("map variant", variant)
+    _check_plain("city", city)
     return os.path.join(os.fspath(dataset_dir), "maps", variant, f"{city}.npz")
 
 
-def _rasterize(vcfg: VariantConfig, city: str, drivable):
-    from seglocnet_jax import maps  # the maps package is the one seam to OSM and rasterio
+def city_sources(man: dict) -> dict[str, str]:
+    """``{city key: city as configured}`` (an embedded name or an OSM path) of a simulator
+    dataset's manifest (``config.city`` / ``config.test_city``); a configured OSM file that is
+    gone is left out (its key cannot be computed)."""
+    config = man.get("config") or {}
+    out = {}
+    for spec in (config.get("city"), config.get("test_city")):
+        if not spec:
+            continue
+        try:
+            out[maps.city_key(spec)] = spec
+        except maps.MapError:
+            continue
+    return out
 
-    map_cfg = maps.MapConfig(
-        kind=vcfg.kind, road_width=vcfg.road_width, channels=tuple(vcfg.channels)
-    )
-    return maps.rasterize(maps.load_city(city), map_cfg, drivable=drivable)
+
+def _rasterize(cfg: MapConfig, city: str, drivable):
+    return maps.rasterize(maps.load_city(city), cfg, drivable=drivable)
+
+
+def _same_config(stored: dict, cfg: MapConfig) -> bool:
+    try:
+        return MapConfig(**stored).same_map(cfg)
+    except (TypeError, ValueError):
+        return False
 
 
 def ensure_variant(
     dataset_dir: str | os.PathLike,
-    vcfg: VariantConfig,
+    cfg: MapConfig,
     source_factory: Callable | None = None,
     sources: dict | None = None,
+    cities: dict[str, str] | None = None,
 ) -> str:
-    """Rasterizes and stores ``vcfg`` for every city of the dataset unless already there;
+    """Rasterizes and stores variant ``cfg`` for every city of the dataset unless already there;
     returns the variant name.
 
-    HD maps need the world's drivable area: ``sources[city]`` or ``source_factory(city)`` must
-    offer ``.drivable`` (shapely geometry, world metres). SD maps only read OSM.
+    Args:
+      dataset_dir: the prepared dataset directory (its manifest lists the city keys).
+      cfg: the map variant.
+      source_factory: ``source_factory(city) -> FrameSource`` with ``.drivable`` (shapely
+        geometry, world metres), called with the city as configured (name or OSM path); HD maps
+        need it unless ``sources`` holds the city. SD maps only read OSM.
+      sources: frame sources already built, by city key (reused; new ones are added).
+      cities: ``{city key: city as configured}``; None: :func:`city_sources` of the manifest.
     """
     man = mf.read_manifest(dataset_dir)
-    name = vcfg.name
-    cities = sorted({c for s in man["splits"].values() for c in s["cities"]})
+    name = cfg.name
+    keys = sorted({c for s in man["splits"].values() for c in s["cities"]})
     entry = man["map_variants"].get(name)
     if entry is not None:
-        if entry["config"] != _plain(vcfg):
+        if not _same_config(entry["config"], cfg):
             raise VariantError(
                 f"{mf.manifest_path(dataset_dir)}: variant {name!r} was stored "
-                f"with {entry['config']}, now {_plain(vcfg)}"
+                f"with {entry['config']}, now {cfg.to_dict()}"
             )
-        if all(os.path.exists(variant_path(dataset_dir, name, c)) for c in cities):
+        if all(os.path.exists(variant_path(dataset_dir, name, c)) for c in keys):
             return name
     sources = {} if sources is None else sources
+    specs = city_sources(man) if cities is None else dict(cities)
     files = {}
-    for city in cities:
-        path = variant_path(dataset_dir, name, city)
-        files[city] = os.path.relpath(path, dataset_dir)
+    for key in keys:
+        path = variant_path(dataset_dir, name, key)
+        files[key] = os.path.relpath(path, dataset_dir)
         if os.path.exists(path):
             continue
+        spec = specs.get(key, key)
+        if spec == key and key.lower() not in maps.EMBEDDED_CITIES:
+            raise VariantError(
+                f"{path}: cannot rasterize city {key!r} for variant {name!r}: it is neither an "
+                f"embedded city nor the key of a configured OSM file (configured: "
+                f"{specs or 'none'}); was the OSM file moved or edited after preparation?"
+            )
         drivable = None
-        if vcfg.kind == "hd":
-            if city not in sources:
+        if cfg.kind == "hd" and "road" in cfg.channels:
+            if key not in sources:
                 if source_factory is None:
                     raise VariantError(
-                        f"HD variant {name!r} of {city!r} needs the world's "
+                        f"HD variant {name!r} of {key!r} needs the world's "
                         "drivable area: pass source_factory"
                     )
-                sources[city] = source_factory(city)
-            drivable = sources[city].drivable
-        raster = _rasterize(vcfg, city, drivable)
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        tmp = f"{path[:-4]}.tmp-{os.getpid()}.npz"  # np.savez keeps a .npz name as is
-        try:
-            raster.save(tmp)
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.remove(tmp)
+                sources[key] = source_factory(spec)
+            drivable = sources[key].drivable
+        _rasterize(cfg, spec, drivable).save(path)
     man = mf.read_manifest(dataset_dir)  # re-read: only this entry changes
-    man["map_variants"][name] = {"config": _plain(vcfg), "files": files}
-    mf.write_json_atomic(mf.manifest_path(dataset_dir), man)
+    old = man["map_variants"].get(name)
+    man["map_variants"][name] = {"config": old["config"] if old else cfg.to_dict(), "files": files}
+    fileio.write_json_atomic(mf.manifest_path(dataset_dir), man)
     return name
 
 
 def load_variant(dataset_dir: str | os.PathLike, variant: str, cities) -> dict:
-    """``{city: maps.CityRaster}`` of a stored variant; :class:`VariantError` names what is
-    missing."""
-    from seglocnet_jax import maps
-
+    """``{city key: maps.CityRaster}`` of a stored variant; :class:`VariantError` names what is
+    missing or corrupt and the remedy."""
     man = mf.read_manifest(dataset_dir)
     if variant not in man["map_variants"]:
         raise VariantError(
@@ -130,11 +156,12 @@ def load_variant(dataset_dir: str | os.PathLike, variant: str, cities) -> dict:
         path = variant_path(dataset_dir, variant, city)
         if not os.path.exists(path):
             raise VariantError(f"{path}: raster of city {city!r} for variant {variant!r} missing")
-        out[city] = maps.CityRaster.load(path)
+        try:
+            out[city] = maps.CityRaster.load(path)
+        except maps.MapError as err:
+            raise VariantError(
+                f"{path}: cached raster of city {city!r} for variant {variant!r} is unreadable "
+                f"({err}); delete the file: the next data preparation (training start or "
+                "data_prep/) rasterizes it again"
+            ) from err
     return out
-
-
-def _plain(vcfg: VariantConfig) -> dict:
-    d = dataclasses.asdict(vcfg)
-    d["channels"] = list(d["channels"])
-    return d

@@ -8,7 +8,9 @@
 Same records, shards and manifest as the simulator pipeline (:mod:`.prepare`), so the loader
 reads both alike. Each sample gets a seeded prior (``splits.seeded_priors``) unless it carries
 one. Re-running with the same config keeps finished shards (their samples are skipped, not
-re-encoded); another config in an existing directory is refused.
+re-encoded); another config in an existing directory is refused. Each shard's SHA-256 and size
+go into the manifest (a kept shard is hashed and compared with what the manifest recorded);
+temporary files left by a killed earlier run are removed first.
 """
 
 from __future__ import annotations
@@ -21,12 +23,14 @@ from collections.abc import Iterable
 import numpy as np
 from tqdm.auto import tqdm
 
+from seglocnet_jax import fileio
 from seglocnet_jax.data import manifest as mf
 from seglocnet_jax.data import splits as sp
 from seglocnet_jax.data.records import (
     RecordError,
     count_records,
     encode_sample,
+    file_checksum,
     shard_name,
     write_shard,
 )
@@ -53,18 +57,21 @@ class DatasetWriter:
         self.dataset_dir = os.fspath(dataset_dir)
         self.seed, self.shard_size, self.png_level = seed, shard_size, png_level
         identity = json.loads(json.dumps(config))
+        fileio.clean_stale_tmp(self.dataset_dir)  # half-written shards of a killed run
         if os.path.exists(mf.manifest_path(self.dataset_dir)):
             self.manifest = mf.read_manifest(self.dataset_dir)
             mf.check_config(self.manifest, identity, self.dataset_dir)
         else:
             os.makedirs(self.dataset_dir, exist_ok=True)
             self.manifest = mf.new_manifest(identity, {})
-            mf.write_json_atomic(mf.manifest_path(self.dataset_dir), self.manifest)
+            mf.write_manifest(self.dataset_dir, self.manifest)
 
     def write_split(self, split: str, samples: Iterable[dict], num_samples: int) -> int:
         """Writes ``num_samples`` samples as ``split``; returns the number of shards written
         (finished shards of an earlier run are kept). Sample ids must be unique."""
         count = max(1, -(-num_samples // self.shard_size))
+        old = self.manifest["splits"].get(split, {}).get("shards", [])
+        recorded = {e["file"]: e for e in old if all(k in e for k in mf.CHECKSUM_KEYS)}
         entries, cities, ids = [], {}, set()
         stream = zlib.crc32(split.encode())  # a stable per-split prior stream
         buf, shard, written = [], 0, 0
@@ -83,23 +90,34 @@ class DatasetWriter:
             cities[sample["city"]] = cities.get(sample["city"], 0) + 1
             buf.append(sample)
             if len(buf) == self.shard_size or i == num_samples - 1:
-                written += self._flush(split, shard, count, buf, i + 1 - len(buf), stream, entries)
+                start = i + 1 - len(buf)
+                entry = self._flush(split, shard, count, buf, start, stream, recorded)
+                written += entry.pop("written")
+                entries.append(entry)
                 buf, shard = [], shard + 1
         self.manifest["splits"][split] = {"shards": entries, "count": num_samples, "cities": cities}
-        mf.write_json_atomic(mf.manifest_path(self.dataset_dir), self.manifest)
+        mf.write_manifest(self.dataset_dir, self.manifest)
         return written
 
-    def _flush(self, split, shard, count, buf, start, stream, entries) -> int:
+    def _flush(self, split, shard, count, buf, start, stream, recorded) -> dict:
+        """Writes one shard unless it exists; returns its manifest entry (plus ``written``)."""
         rel = f"sensors/{split}/{shard_name(split, shard, count)}"
         path = os.path.join(self.dataset_dir, rel)
-        entries.append({"file": rel, "count": len(buf)})
         if os.path.exists(path):
-            if count_records(path) != len(buf):
+            n = count_records(path)
+            if n != len(buf):
                 raise RecordError(
-                    f"{path}: existing shard has {count_records(path)} records, "
+                    f"{path}: existing shard has {n} records, "
                     f"expected {len(buf)}; delete it to have it written again"
                 )
-            return 0
+            checksum = file_checksum(path)
+            if rel in recorded and {k: recorded[rel][k] for k in mf.CHECKSUM_KEYS} != checksum:
+                raise RecordError(
+                    f"{path}: existing shard differs from the checksum recorded in "
+                    f"{mf.manifest_path(self.dataset_dir)} (it changed after it was written); "
+                    "delete it to have it written again"
+                )
+            return {"file": rel, "count": len(buf), **checksum, "written": 0}
         xy = np.stack([np.asarray(s["pose"], np.float64)[:2] for s in buf])
         # Priors of the whole split drawn in one stream: index by the split position.
         priors = sp.seeded_priors(np.zeros((start + len(buf), 2)), self.seed, stream)[start:]
@@ -110,11 +128,11 @@ class DatasetWriter:
             recs.append(
                 encode_sample(sample, compress_level=self.png_level, where=f"{path} record {j}")
             )
-        write_shard(path, recs)
-        return 1
+        checksum = write_shard(path, recs)
+        return {"file": rel, "count": len(buf), **checksum, "written": 1}
 
     def close(self) -> str:
         """Marks the dataset complete; returns its directory."""
         self.manifest["complete"] = True
-        mf.write_json_atomic(mf.manifest_path(self.dataset_dir), self.manifest)
+        mf.write_manifest(self.dataset_dir, self.manifest)
         return self.dataset_dir

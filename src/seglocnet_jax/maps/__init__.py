@@ -9,12 +9,14 @@ from seglocnet_jax.maps.osm import (
     CityGeometry,
     MapError,
     Road,
+    city_key,
     embedded_city_path,
     load_city,
 )
 from seglocnet_jax.maps.projection import Projection, ProjectionError, make_projection
 from seglocnet_jax.maps.raster import (
     CHANNELS,
+    KINDS,
     CityRaster,
     MapConfig,
     MapConfigError,
@@ -27,6 +29,7 @@ __all__ = [
     "CHANNELS",
     "DRIVABLE_HIGHWAYS",
     "EMBEDDED_CITIES",
+    "KINDS",
     "Building",
     "CityGeometry",
     "CityRaster",
@@ -38,6 +41,7 @@ __all__ = [
     "ProjectionError",
     "Road",
     "buffer_roads",
+    "city_key",
     "configs_from_section",
     "embedded_city_path",
     "load_city",

@@ -22,25 +22,30 @@ from seglocnet_jax.maps.projection import Projection
 
 # Drivable highway classes (motor traffic). Footways, cycleways, steps, paths, pedestrian zones,
 # tracks, bridleways, construction / proposed ways are not road in either map kind.
-DRIVABLE_HIGHWAYS = frozenset(
-    {
-        "motorway",
-        "trunk",
-        "primary",
-        "secondary",
-        "tertiary",
-        "unclassified",
-        "residential",
-        "living_street",
-        "service",
-        "road",
-        "motorway_link",
-        "trunk_link",
-        "primary_link",
-        "secondary_link",
-        "tertiary_link",
-    }
-)
+# highway class -> (default total lanes, lane width m, default lanes when one-way), for
+# :func:`road_profile` where a way has no usable ``lanes`` / ``width`` tag.
+HIGHWAY_LANES: dict[str, tuple[int, float, int]] = {
+    "motorway": (2, 3.5, 2),
+    "trunk": (2, 3.5, 2),
+    "primary": (2, 3.25, 2),
+    "secondary": (2, 3.25, 1),
+    "tertiary": (2, 3.0, 1),
+    "unclassified": (2, 3.0, 1),
+    "residential": (2, 2.9, 1),
+    "living_street": (1, 4.0, 1),
+    "service": (1, 3.6, 1),
+    "road": (2, 3.0, 1),
+    "motorway_link": (1, 3.75, 1),
+    "trunk_link": (1, 3.75, 1),
+    "primary_link": (1, 3.5, 1),
+    "secondary_link": (1, 3.5, 1),
+    "tertiary_link": (1, 3.5, 1),
+}
+DRIVABLE_HIGHWAYS = frozenset(HIGHWAY_LANES)
+MAX_LANES = 8
+WIDTH_RANGE = (2.0, 40.0)  # metres: a ``width`` tag outside it is a mapping error
+HEIGHT_RANGE = (2.0, 300.0)  # metres: plausible ``height`` tags
+LEVELS_RANGE = (1, 80)  # plausible ``building:levels`` tags
 
 EMBEDDED_CITIES = {"helsinki": "Helsinki.osm.pbf", "kouvola": "test.osm.pbf"}
 
@@ -82,7 +87,6 @@ class Building:
       levels: ``building:levels`` tag, None if absent or unparsable.
       osm_id: id of the way or relation (see ``osm_type``).
       osm_type: ``"way"`` or ``"relation"``.
-      tags: the raw OSM values of ``height`` and ``building:levels`` when present.
     """
 
     geometry: Polygon | MultiPolygon
@@ -90,7 +94,6 @@ class Building:
     levels: float | None
     osm_id: int
     osm_type: str
-    tags: dict = dataclasses.field(default_factory=dict, compare=False, hash=False)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,12 +143,71 @@ def resolve_city(name_or_path: str | os.PathLike) -> tuple[str, str]:
     return name, text
 
 
+_CITY_KEYS: dict[tuple, str] = {}  # (real path, size, mtime_ns) -> key: hash a file once
+
+
+def city_key(city: str | os.PathLike) -> str:
+    """The stable key naming a city in file names and manifests (raster ``<key>.npz``, split
+    and ``cities`` entries, record ``city`` fields).
+
+    An embedded city is its name (``helsinki``, ``kouvola``; any case); an OSM file is
+    ``<file stem>-<first 10 hex digits of the sha256 of its content>`` (e.g.
+    ``tampere-3f2a9c01b7``): the same content gives the same key wherever the file lies, and an
+    edited file a new one.
+    The key never contains a path separator. A name that is neither raises :class:`MapError`.
+    """
+    import hashlib
+
+    stem, path = resolve_city(city)
+    if stem in EMBEDDED_CITIES and os.fspath(city).lower() == stem:
+        return stem
+    st = os.stat(path)
+    cache = (os.path.realpath(path), st.st_size, st.st_mtime_ns)
+    if cache not in _CITY_KEYS:
+        digest = hashlib.sha256()
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                digest.update(chunk)
+        safe = re.sub(r"[^A-Za-z0-9._-]+", "_", stem).strip("._") or "city"
+        _CITY_KEYS[cache] = f"{safe}-{digest.hexdigest()[:10]}"
+    return _CITY_KEYS[cache]
+
+
 def _number(text: str | None) -> float | None:
     """The leading number of an OSM tag value (``"7 m"``, ``"2;3"``), else None."""
     if text is None:
         return None
     m = re.match(r"\s*([0-9]+(?:\.[0-9]+)?)", text.replace(",", "."))
     return float(m.group(1)) if m else None
+
+
+def road_profile(road: Road) -> tuple[float, int]:
+    """``(carriageway width m, total lanes)`` of a drivable road: its ``lanes`` tag (at most
+    :data:`MAX_LANES`) and its ``width`` tag when within :data:`WIDTH_RANGE`, else the class
+    defaults of :data:`HIGHWAY_LANES` (lanes x lane width)."""
+    lanes_default, lane_w, oneway_lanes = HIGHWAY_LANES[road.highway]
+    lanes = road.lanes if road.lanes and road.lanes >= 1 else None
+    lanes = min(lanes or (oneway_lanes if road.oneway else lanes_default), MAX_LANES)
+    width = road.width
+    if width is None or not WIDTH_RANGE[0] <= width <= WIDTH_RANGE[1]:
+        width = lanes * lane_w
+    return float(width), int(lanes)
+
+
+def building_height(building: Building, level_height: float) -> float | None:
+    """Height (m) of a building from its tags: ``height`` within :data:`HEIGHT_RANGE`, else
+    ``building:levels`` within :data:`LEVELS_RANGE` x ``level_height`` + 1 m of roof; None when
+    neither tag is usable."""
+    if building.height is not None and HEIGHT_RANGE[0] <= building.height <= HEIGHT_RANGE[1]:
+        return float(building.height)
+    if building.levels is not None and LEVELS_RANGE[0] <= building.levels <= LEVELS_RANGE[1]:
+        return levels_height(building.levels, level_height)
+    return None
+
+
+def levels_height(levels: float, level_height: float) -> float:
+    """Height (m) of a building of ``levels`` storeys of ``level_height`` metres (+ 1 m roof)."""
+    return float(levels) * level_height + 1.0
 
 
 def _read(path: str) -> tuple[list, list]:
@@ -307,7 +369,6 @@ def load_city(
             _number(tags["building:levels"]),
             oid,
             kind,
-            {k: v for k, v in tags.items() if v is not None},
         )
         for poly, (_, tags, oid, kind) in zip(polys, raw_buildings, strict=True)
     )

@@ -11,12 +11,15 @@ from __future__ import annotations
 import dataclasses
 import numbers
 import os
+import zipfile
+import zlib
 
 import numpy as np
 import rasterio.features
 import shapely
 from rasterio.transform import Affine
 
+from seglocnet_jax import fileio
 from seglocnet_jax import geometry as g
 from seglocnet_jax.maps.osm import CityGeometry, MapError
 
@@ -30,55 +33,105 @@ class MapConfigError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class MapConfig:
-    """How a city becomes a binary map.
+    """One map variant: how a city becomes a binary map (the ``map`` config section's raster
+    keys). The one map-variant config of the project: the rasterizer, the prepared datasets'
+    ``maps/<name>/`` directories and the manifest's ``map_variants`` all use it.
+
+    Rasters are always at :data:`seglocnet_jax.geometry.RESOLUTION` (0.5 m/px, DESIGN): the BEV,
+    the tiles, the simulator and the solver's decoding all assume it.
 
     Attributes:
       kind: ``"hd"`` (caller's drivable area + OSM buildings) or ``"sd"`` (OSM centrelines
         buffered to ``road_width`` + OSM buildings).
-      road_width: SD road width in metres (paper: 10; ablation 2.5 / 5 / 10).
-      channels: raster channels, in order; each ``"road"`` or ``"building"``.
-      resolution: metres per pixel.
+      road_width: SD road width in metres (paper: 10; ablation 2.5 / 5 / 10); HD maps ignore it
+        (it is kept so that a sweep can set it for either kind).
+      channels: raster channels, in order; each one of :data:`CHANNELS`, no repeats.
     """
 
     kind: str = "hd"
     road_width: float = 10.0
     channels: tuple[str, ...] = CHANNELS
-    resolution: float = g.RESOLUTION
 
     def __post_init__(self):
         if self.kind not in KINDS:
-            raise MapConfigError(f"map.kind must be one of {KINDS}, got {self.kind!r}")
-        channels = tuple(self.channels) if not isinstance(self.channels, str) else (self.channels,)
+            raise MapConfigError(f"map.kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
+        allowed = ", ".join(CHANNELS)
+        channels = self.channels
+        if isinstance(channels, str):
+            channels = (channels,)
+        try:
+            channels = tuple(channels)
+        except TypeError:
+            raise MapConfigError(
+                f"map.channels must be a list of channel names ({allowed}), got {self.channels!r}"
+            ) from None
         object.__setattr__(self, "channels", channels)
         if not channels:
-            raise MapConfigError("map.channels must name at least one of ('road', 'building')")
+            raise MapConfigError(f"map.channels must name at least one channel of: {allowed}")
         for c in channels:
             if c not in CHANNELS:
-                raise MapConfigError(f"map.channels has unknown channel {c!r}; known: {CHANNELS}")
+                raise MapConfigError(f"map.channels has unknown channel {c!r}; allowed: {allowed}")
         if len(set(channels)) != len(channels):
-            raise MapConfigError(f"map.channels repeats a channel: {channels!r}")
-        for key, unit in (("road_width", "metres"), ("resolution", "m/px")):
-            value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not value > 0:
-                raise MapConfigError(f"map.{key} must be a number > 0 {unit}, got {value!r}")
-            object.__setattr__(self, key, float(value))
+            raise MapConfigError(
+                f"map.channels repeats a channel: {list(channels)!r}; each of {allowed} "
+                "at most once"
+            )
+        value = self.road_width
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not value > 0:
+            raise MapConfigError(f"map.road_width must be a number > 0 metres, got {value!r}")
+        object.__setattr__(self, "road_width", float(value))
+
+    @property
+    def name(self) -> str:
+        """Directory name of the variant, e.g. ``hd_road-building`` or ``sd_w5_road-building``
+        (HD names carry no width: HD maps do not depend on it)."""
+        width = f"_w{self.road_width:g}" if self.kind == "sd" else ""
+        return f"{self.kind}{width}_{'-'.join(self.channels)}"
+
+    def to_dict(self) -> dict:
+        """Plain JSON-able form (``channels`` a list), as the manifest records it."""
+        return {"kind": self.kind, "road_width": self.road_width, "channels": list(self.channels)}
+
+    def same_map(self, other: MapConfig) -> bool:
+        """Whether ``other`` draws the same raster (equal, or both HD and differing only in
+        the ``road_width`` that HD ignores)."""
+        if self.kind == other.kind == "hd":
+            return self.channels == other.channels
+        return self == other
 
 
-def rasterize_geometries(geoms, grid: g.RasterGrid) -> np.ndarray:
-    """Burns shapely geometries (or a list of them) into a ``(H, W)`` uint8 {0, 1} mask on
-    ``grid``. A pixel is 1 when its centre lies inside a polygon (GDAL rule)."""
+def rasterize_geometries(
+    geoms, grid: g.RasterGrid, values=None, *, dtype=np.uint8, all_touched: bool = False
+) -> np.ndarray:
+    """Burns shapely geometries into a zero ``(H, W)`` raster of ``dtype`` on ``grid``.
+
+    Args:
+      geoms: a shapely geometry or an iterable of them; ``None`` / empty ones are skipped.
+      grid: the raster's placement.
+      values: one value per geometry (an iterable as long as ``geoms``, paired before skipping);
+        default 1 for all, i.e. a {0, 1} mask. Later geometries win where they overlap.
+      dtype: output dtype.
+      all_touched: burn every pixel a geometry touches (thin lines); default: a pixel is burnt
+        when its centre lies inside (GDAL rule).
+    """
     if isinstance(geoms, shapely.Geometry):
         geoms = [geoms]
-    geoms = [x for x in geoms if x is not None and not x.is_empty]
-    if not geoms:
-        return np.zeros((grid.height, grid.width), np.uint8)
+    geoms = list(geoms)
+    values = [1] * len(geoms) if values is None else list(values)
+    if len(values) != len(geoms):
+        raise ValueError(f"rasterize_geometries: {len(geoms)} geometries but {len(values)} values")
+    shapes = [
+        (x, v) for x, v in zip(geoms, values, strict=True) if x is not None and not x.is_empty
+    ]
+    if not shapes:
+        return np.zeros((grid.height, grid.width), dtype)
     return rasterio.features.rasterize(
-        ((x, 1) for x in geoms),
+        shapes,
         out_shape=(grid.height, grid.width),
         transform=Affine(*grid.affine()),
         fill=0,
-        dtype=np.uint8,
-        all_touched=False,
+        dtype=dtype,
+        all_touched=all_touched,
     )
 
 
@@ -126,16 +179,7 @@ class CityRaster:
         pixel corner, zero outside the raster; returns ``(tile, (cx, cy))`` with the snapped
         centre in world metres."""
         row0, col0, cx, cy = g.tile_window(self.grid, x, y, size)
-        row0, col0 = int(row0), int(col0)
-        c, h, w = self.mask.shape
-        r0, r1 = max(row0, 0), min(row0 + size, h)
-        c0, c1 = max(col0, 0), min(col0 + size, w)
-        if r0 == row0 and c0 == col0 and r1 - r0 == size and c1 - c0 == size:
-            return self.mask[:, r0:r1, c0:c1].copy(), (float(cx), float(cy))
-        out = np.zeros((c, size, size), self.mask.dtype)
-        if r1 > r0 and c1 > c0:
-            out[:, r0 - row0 : r1 - row0, c0 - col0 : c1 - col0] = self.mask[:, r0:r1, c0:c1]
-        return out, (float(cx), float(cy))
+        return g.crop(self.mask, row0, col0, size), (float(cx), float(cy))
 
     def cut_bev(self, pose, size: int = g.BEV_SIZE) -> np.ndarray:
         """GT BEV label ``(C, size, size)`` uint8 at world ``pose = (x, y, yaw)``: the map pixel
@@ -161,27 +205,23 @@ class CityRaster:
         return np.ascontiguousarray(out.transpose(1, 0, 2, 3))
 
     def save(self, path: str | os.PathLike) -> None:
-        """Writes a compressed ``.npz`` atomically (temporary name, then ``os.replace``)."""
-        path = os.fspath(path)
-        tmp = f"{path}.tmp-{os.getpid()}"
+        """Writes a compressed ``.npz`` atomically (:func:`seglocnet_jax.fileio.atomic_path`);
+        creates the parent directory."""
         gr = self.grid
-        try:
-            with open(tmp, "wb") as f:
-                np.savez_compressed(
-                    f,
-                    mask=self.mask,
-                    channels=np.array(self.channels),
-                    name=np.array(self.name),
-                    grid=np.array([gr.x_min, gr.y_max, gr.height, gr.width, gr.resolution]),
-                )
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.remove(tmp)
+        with fileio.atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.savez_compressed(
+                f,
+                mask=self.mask,
+                channels=np.array(self.channels),
+                name=np.array(self.name),
+                grid=np.array([gr.x_min, gr.y_max, gr.height, gr.width, gr.resolution]),
+            )
+            f.flush()
+            os.fsync(f.fileno())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> CityRaster:
-        """Reads a raster written by :meth:`save`; a missing or malformed file raises
+        """Reads a raster written by :meth:`save`; a missing, truncated or malformed file raises
         :class:`MapError` naming it."""
         path = os.fspath(path)
         try:
@@ -189,8 +229,13 @@ class CityRaster:
                 mask, grid = z["mask"], z["grid"]
                 channels = tuple(str(c) for c in z["channels"])
                 name = str(z["name"])
-        except (OSError, KeyError, ValueError) as err:
-            raise MapError(f"{path}: not a city raster written by CityRaster.save ({err})") from err
+        except FileNotFoundError as err:
+            raise MapError(f"{path}: city raster file does not exist") from err
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+            raise MapError(
+                f"{path}: corrupt or not a city raster written by CityRaster.save "
+                f"({type(err).__name__}: {err})"
+            ) from err
         if mask.dtype != np.uint8 or grid.shape != (5,):
             raise MapError(
                 f"{path}: mask dtype {mask.dtype} / grid {grid.shape}: expected uint8 "
@@ -211,11 +256,12 @@ def rasterize(city: CityGeometry, cfg: MapConfig, drivable=None) -> CityRaster:
 
     Args:
       city: OSM content in world metres (:func:`osm.load_city`).
-      cfg: map kind, SD road width, channels, resolution.
+      cfg: map kind, SD road width, channels.
       drivable: HD only: the drivable area, a shapely geometry or a list of them (world metres).
 
-    The grid covers everything drawn, corners on multiples of the resolution (so tiles of
-    different variants of a city line up pixel for pixel where they overlap).
+    The grid (at :data:`geometry.RESOLUTION`) covers everything drawn, corners on multiples of
+    the resolution (so tiles of different variants of a city line up pixel for pixel where they
+    overlap).
     """
     road_geoms = None
     if "road" in cfg.channels:
@@ -237,7 +283,7 @@ def rasterize(city: CityGeometry, cfg: MapConfig, drivable=None) -> CityRaster:
     if drawn:
         b = shapely.total_bounds(drawn)
         bounds = np.concatenate([np.minimum(bounds[:2], b[:2]), np.maximum(bounds[2:], b[2:])])
-    grid = g.RasterGrid.covering(tuple(bounds), resolution=cfg.resolution)
+    grid = g.RasterGrid.covering(tuple(bounds), resolution=g.RESOLUTION)
     layers = {"road": road_geoms, "building": building_geoms}
     mask = np.stack([rasterize_geometries(layers[c], grid) for c in cfg.channels])
     return CityRaster(mask, grid, tuple(cfg.channels), city.name)

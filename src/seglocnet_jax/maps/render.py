@@ -7,6 +7,9 @@ import os
 import numpy as np
 from PIL import Image
 
+from seglocnet_jax.fileio import atomic_path
+
+# The project's one mask palette (previews, contact sheets, evaluation figures): uint8 RGB.
 BACKGROUND = (255, 255, 255)
 COLOURS = {"road": (110, 110, 110), "building": (214, 96, 60)}  # grey roads, brick buildings
 
@@ -42,14 +45,8 @@ def outline(
 def save_png(rgb: np.ndarray, path: str | os.PathLike) -> str:
     """Writes ``(H, W, 3)`` uint8 as PNG atomically; returns the path."""
     path = os.fspath(path)
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = f"{path}.tmp-{os.getpid()}"
-    try:
+    with atomic_path(path) as tmp:
         Image.fromarray(rgb).save(tmp, format="PNG")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
     return path
 
 

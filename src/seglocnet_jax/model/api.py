@@ -1,4 +1,5 @@
-"""The model's functional API: ``init``, ``forward``, ``loss_fn`` and ``localize``.
+"""The model's functional API: ``init``, ``forward`` and ``loss_fn`` (localization: the one
+localize step, :func:`seglocnet_jax.evaluation.make_localize_step`).
 
 Pure functions of ``params`` (flax.linen, parameters only: GroupNorm, no batch statistics), to
 be jitted once and sharded by the caller. ``cfg`` (a frozen, hashable :class:`ModelConfig`) is
@@ -116,17 +117,3 @@ def make_loss_fn(cfg: ModelConfig):
 
 def _bound_loss(params, batch, rng, *, cfg):
     return loss_fn(params, batch, cfg, rng)
-
-
-def localize(params: dict, batch: dict, cfg: ModelConfig, solver_cfg: solver.SolverConfig):
-    """Network + solver: ``solver.localize`` output dict plus ``bev_logits``.
-
-    ``seg`` matches the BEV logits against the {0, 1} tile; ``nm`` matches the BEV matching
-    features against the neural map of the tile.
-    """
-    logits, aux = forward(params, batch, cfg)
-    if cfg.variant == "nm":
-        out = solver.localize(aux["bev_match"], aux["map_match"], solver_cfg)
-    else:
-        out = solver.localize(logits, batch["tile"].astype(jnp.float32), solver_cfg)
-    return dict(out, bev_logits=logits)

@@ -12,21 +12,12 @@ from __future__ import annotations
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from seglocnet_jax import geometry
 from seglocnet_jax.model.config import ModelConfig
 from seglocnet_jax.model.layers import ConvNormAct, ResBlock
 
 NUM_VOXEL_FEATURES = 3  # log(1 + count), mean intensity, mean height within the voxel
-
-
-def _bev_index_affine(num_cells: int, voxel_size: float):
-    """``row = r0 + a * forward``, ``col = c0 + b * left`` read off :mod:`geometry` (the only
-    owner of the BEV raster convention) for a ``num_cells`` grid of ``voxel_size`` cells."""
-    r0, c0 = geometry.ego_to_bev_pixel(np.zeros(2), num_cells, voxel_size)
-    r1, c1 = geometry.ego_to_bev_pixel(np.ones(2), num_cells, voxel_size)
-    return float(r0), float(r1 - r0), float(c0), float(c1 - c0)
 
 
 def voxel_indices(
@@ -43,9 +34,9 @@ def voxel_indices(
       ``(P, 3)`` int32 indices and ``(P,)`` bool validity (mask and inside the grid).
     """
     rows, cols, nz = grid
-    r0, ar, c0, ac = _bev_index_affine(rows, voxel_size)
-    row = jnp.floor(r0 + ar * points[:, 0]).astype(jnp.int32)
-    col = jnp.floor(c0 + ac * points[:, 1]).astype(jnp.int32)
+    row, col = geometry.ego_to_bev_pixel(points[:, :2], rows, voxel_size)
+    row = jnp.floor(row).astype(jnp.int32)
+    col = jnp.floor(col).astype(jnp.int32)
     zi = jnp.floor((points[:, 2] - z_min) / voxel_size).astype(jnp.int32)
     inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols) & (zi >= 0) & (zi < nz)
     return jnp.stack([row, col, zi], axis=-1), inside & mask

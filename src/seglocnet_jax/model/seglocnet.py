@@ -9,7 +9,6 @@ and figures never need to re-run parts of the model.
 from __future__ import annotations
 
 import flax.linen as nn
-import jax
 import jax.numpy as jnp
 
 from seglocnet_jax.model.camera import CameraEncoder
@@ -82,12 +81,3 @@ class SegLocNet(nn.Module):
             aux["map_match"] = jnp.moveaxis(map_match, -1, 1)  # (B, D', 256, 256)
             aux["match_scale"] = MatchScale(cfg.nm_init_scale, name="match_scale")()
         return jnp.moveaxis(logits, -1, 1), aux  # (B, C, 128, 128)
-
-
-def param_groups(params: dict) -> dict[str, jax.Array]:
-    """Top-level parameter groups (``camera``, ``lidar``, ``fusion``, ``decoder``, ...) with
-    the global L2 norm of each: handy for gradient checks and logging."""
-    return {
-        name: jnp.sqrt(sum(jnp.sum(jnp.square(x)) for x in jax.tree.leaves(sub)))
-        for name, sub in params.items()
-    }

@@ -79,7 +79,7 @@ def _label(img: np.ndarray, text: str) -> np.ndarray:
     return np.asarray(pil)
 
 
-def contact_sheet(world, samples, hd, sd) -> np.ndarray:
+def contact_sheet(samples, hd, sd) -> np.ndarray:
     """``(rows * 256, W, 3)`` uint8 sheet for rendered ``samples`` (see the module doc)."""
     rows = []
     for s in samples:
@@ -124,7 +124,7 @@ def main(argv=None) -> str:
     samples = Simulator(world, sensors).render(poses, args.seed)
     hd = rasterize(city, MapConfig(kind="hd"), drivable=world.drivable)
     sd = rasterize(city, MapConfig(kind="sd", road_width=args.sd_width))
-    path = save_png(contact_sheet(world, samples, hd, sd), args.out)
+    path = save_png(contact_sheet(samples, hd, sd), args.out)
     print(path)
     return path
 

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from seglocnet_jax import geometry
+
 SKY, GROUND, THING = 0, 1, 2
 TOP, X_FACE, Y_FACE = 0, 1, 2  # which face of a cell a ray entered (roof / east-west / n-s)
 
@@ -62,9 +64,8 @@ def march(
     hit cell ``row``, ``col`` (patch cells).
     """
     size = patch["thing"].shape[0]
-    c, s = jnp.cos(pose[2]), jnp.sin(pose[2])
-    e0 = pose[0] + c * col_pos[:, 0] - s * col_pos[:, 1]  # (C,)
-    n0 = pose[1] + s * col_pos[:, 0] + c * col_pos[:, 1]
+    sensor = geometry.ego_to_world(pose, col_pos[:, :2])  # (C, 2) patch-local (e, n)
+    e0, n0 = sensor[:, 0], sensor[:, 1]  # (C,)
     z0 = col_pos[:, 2]
     theta = pose[2] + col_az
     ce, cn = jnp.cos(theta), jnp.sin(theta)
@@ -137,11 +138,10 @@ def march(
     }
 
 
-def hit_points_ego(hits: dict, pose, col_pos, col_az, slopes):
+def hit_points_ego(hits: dict, col_pos, col_az, slopes):
     """Ego-frame ``(C, R, 3)`` points of the hits (sensor position + ray to the hit)."""
     d = hits["d"]
     x = col_pos[:, 0:1] + d * jnp.cos(col_az)[:, None]
     y = col_pos[:, 1:2] + d * jnp.sin(col_az)[:, None]
     z = col_pos[:, 2:3] + d * slopes
-    del pose
     return jnp.stack([x, y, z], axis=-1)

@@ -4,55 +4,27 @@ All geometry is in the city's world frame (metres, x east, y north). A road of t
 OSM drivable way whose centreline is densified and displaced by a smooth random field of
 magnitude 0.5-1.5 m (real OSM is traced from imagery whose registration error varies smoothly
 over a city; one continuous field keeps junctions connected), then buffered to its width from
-the ``lanes`` / ``width`` tags or per-class defaults. The union of the buffers is the world's
-drivable area (the HD map).
+the ``lanes`` / ``width`` tags or per-class defaults (:func:`seglocnet_jax.maps.osm.road_profile`:
+OSM tags are interpreted in ``maps`` only). The union of the buffers is the world's drivable area
+(the HD map).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import re
 
 import numpy as np
 import shapely
 from shapely.geometry import LineString
 from shapely.ops import substring
 
-# highway class -> (default total lanes, lane width m, default lanes when oneway)
-ROAD_CLASSES: dict[str, tuple[int, float, int]] = {
-    "motorway": (2, 3.5, 2),
-    "trunk": (2, 3.5, 2),
-    "primary": (2, 3.25, 2),
-    "secondary": (2, 3.25, 1),
-    "tertiary": (2, 3.0, 1),
-    "unclassified": (2, 3.0, 1),
-    "residential": (2, 2.9, 1),
-    "living_street": (1, 4.0, 1),
-    "service": (1, 3.6, 1),
-    "road": (2, 3.0, 1),
-    "motorway_link": (1, 3.75, 1),
-    "trunk_link": (1, 3.75, 1),
-    "primary_link": (1, 3.5, 1),
-    "secondary_link": (1, 3.5, 1),
-    "tertiary_link": (1, 3.5, 1),
-}
-# Classes without sidewalks or edge markings.
-NO_SIDEWALK = {"motorway", "trunk", "motorway_link", "trunk_link"}
-MARKED = {
-    "motorway",
-    "trunk",
-    "primary",
-    "secondary",
-    "tertiary",
-    "unclassified",
-    "road",
-    "motorway_link",
-    "trunk_link",
-    "primary_link",
-    "secondary_link",
-    "tertiary_link",
-}
+from seglocnet_jax.maps import osm
+
+# Classes without sidewalks; classes with painted lane and edge lines (all but residential
+# streets, living streets and service roads).
+NO_SIDEWALK = frozenset({"motorway", "trunk", "motorway_link", "trunk_link"})
+MARKED = osm.DRIVABLE_HIGHWAYS - {"residential", "living_street", "service"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,7 +36,8 @@ class Road:
         densified; traversal direction is the OSM way direction.
       width: carriageway width (m).
       lanes: total number of lanes.
-      oneway: 0 both directions, 1 along the way, -1 against it.
+      oneway: one-way in the centreline's direction (``maps.Road`` draws one-way ways in their
+        direction of travel).
       highway: OSM highway class.
       osm_index: index of the way in the city's road list.
       osm_centerline: ``(M, 2)`` the OSM centreline at the same vertices (before the offset).
@@ -73,7 +46,7 @@ class Road:
     centerline: np.ndarray
     width: float
     lanes: int
-    oneway: int
+    oneway: bool
     highway: str
     osm_index: int
     osm_centerline: np.ndarray
@@ -81,48 +54,6 @@ class Road:
     @property
     def line(self) -> LineString:
         return LineString(self.centerline)
-
-
-def tag(feature, key: str):
-    """A tag of a maps feature: its ``tags`` mapping, else an attribute (``:`` -> ``_``)."""
-    tags = getattr(feature, "tags", None)
-    if isinstance(tags, dict) and key in tags:
-        return tags[key]
-    return getattr(feature, key.replace(":", "_"), None)
-
-
-def parse_number(value) -> float | None:
-    """First number in an OSM tag value (``"7"``, ``"7.5 m"``, ``"3;4"``); None if absent."""
-    if value is None:
-        return None
-    if isinstance(value, int | float) and not isinstance(value, bool):
-        return float(value) if math.isfinite(value) else None
-    m = re.search(r"\d+(?:\.\d+)?", str(value).replace(",", "."))
-    return float(m.group()) if m else None
-
-
-def parse_oneway(value, highway: str) -> int:
-    """OSM ``oneway`` to 0 / 1 / -1; motorways are one-way unless tagged otherwise."""
-    if value is None:
-        return 1 if highway in ("motorway", "motorway_link") else 0
-    v = str(value).strip().lower()
-    if v in ("yes", "true", "1"):
-        return 1
-    if v in ("-1", "reverse"):
-        return -1
-    return 0
-
-
-def road_profile(highway: str, lanes_tag, width_tag, oneway: int) -> tuple[float, int]:
-    """``(width m, total lanes)`` from the tags, else the class defaults."""
-    lanes_default, lane_w, oneway_lanes = ROAD_CLASSES[highway]
-    lanes = parse_number(lanes_tag)
-    lanes = int(lanes) if lanes and lanes >= 1 else (oneway_lanes if oneway else lanes_default)
-    lanes = min(lanes, 8)
-    width = parse_number(width_tag)
-    if width is None or not 2.0 <= width <= 40.0:
-        width = lanes * lane_w
-    return float(width), lanes
 
 
 class OffsetField:
@@ -160,24 +91,22 @@ def densify(coords: np.ndarray, step: float) -> np.ndarray:
 
 
 def build_roads(city_roads, field: OffsetField, step: float = 2.0) -> list[Road]:
-    """The world's roads from the city's OSM roads (non-drivable classes are skipped)."""
+    """The world's roads from the city's OSM roads (:class:`seglocnet_jax.maps.Road`: tags as
+    :func:`seglocnet_jax.maps.load_city` parsed them); widths and lanes from
+    :func:`seglocnet_jax.maps.osm.road_profile`."""
     roads = []
     for i, feat in enumerate(city_roads):
-        highway = str(tag(feat, "highway") or "")
         geom = feat.geometry
-        if highway not in ROAD_CLASSES or geom is None or geom.is_empty:
+        if feat.highway not in osm.DRIVABLE_HIGHWAYS or geom is None or geom.is_empty:
             continue
-        lines = list(geom.geoms) if hasattr(geom, "geoms") else [geom]
-        oneway = parse_oneway(tag(feat, "oneway"), highway)
-        if str(tag(feat, "junction") or "") == "roundabout" and oneway == 0:
-            oneway = 1
-        width, lanes = road_profile(highway, tag(feat, "lanes"), tag(feat, "width"), oneway)
-        for line in lines:
-            coords = np.asarray(line.coords, np.float64)[:, :2]
-            if len(coords) < 2 or line.length < 1.0:
-                continue
-            dense = densify(coords, step)
-            roads.append(Road(dense + field(dense), width, lanes, oneway, highway, i, dense))
+        width, lanes = osm.road_profile(feat)
+        coords = np.asarray(geom.coords, np.float64)[:, :2]
+        if len(coords) < 2 or geom.length < 1.0:
+            continue
+        dense = densify(coords, step)
+        roads.append(
+            Road(dense + field(dense), width, lanes, bool(feat.oneway), feat.highway, i, dense)
+        )
     return roads
 
 
@@ -227,7 +156,7 @@ def marking_lines(road: Road, rng: np.random.Generator) -> list[LineString]:
     start = rng.uniform(0, 9.0)
     for j in range(1, lanes):
         offset = -half + j * lane_w
-        centre_div = road.oneway == 0 and j == lanes // 2 and lanes % 2 == 0
+        centre_div = not road.oneway and j == lanes // 2 and lanes % 2 == 0
         src = line if abs(offset) < 1e-6 else line.offset_curve(offset)
         if src.is_empty or src.geom_type != "LineString":
             continue

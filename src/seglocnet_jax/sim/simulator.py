@@ -1,5 +1,6 @@
-"""``Simulator(world, sensor_cfg).render(poses, seed)``: sample dicts (``data.schema``) of the
-6-camera rig and the LiDAR at world poses.
+"""``Simulator(world, sensor_cfg).render(poses, seed)``: sample dicts of the 6-camera rig and the
+LiDAR at world poses (the producer samples of ``data.schema``, which ``data.sim_source``
+validates: ``sim`` does not import ``data``).
 
 Per frame a square patch of the world raster around the pose is cut in NumPy (static size, so
 one compiled function serves every frame); ``cfg.chunk`` frames are rendered per call by a
@@ -9,13 +10,14 @@ the frame's index in the call: the same poses and seed give the same samples.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from seglocnet_jax.data.schema import check_sample
+from seglocnet_jax import geometry
 from seglocnet_jax.sim import camera as cam
 from seglocnet_jax.sim import lidar as ld
 from seglocnet_jax.sim import render as rn
@@ -42,11 +44,18 @@ class Simulator:
         d, step = sn.march_distances(cfg)
         self._dists, self._steps = jnp.asarray(d), jnp.asarray(step)
         self._palette = jnp.asarray(thing_palette(world.seed))
-        self._render = jax.jit(jax.vmap(self._frame))
+        self._compiled: dict[bool, object] = {}
+
+    def _renderer(self, diagnostics: bool):
+        """The jitted, vmapped :meth:`_frame` (one per value of ``diagnostics``)."""
+        if diagnostics not in self._compiled:
+            frame = functools.partial(self._frame, diagnostics=diagnostics)
+            self._compiled[diagnostics] = jax.jit(jax.vmap(frame))
+        return self._compiled[diagnostics]
 
     # ------------------------------------------------------------------ compiled part
 
-    def _frame(self, patch, pose, cell0, light, key):
+    def _frame(self, patch, pose, cell0, light, key, *, diagnostics: bool):
         cfg, res = self.cfg, self.world.grid.resolution
         patch = {
             k: v.astype(jnp.int32 if k in ("surface", "thing", "colour") else jnp.float32)
@@ -68,15 +77,12 @@ class Simulator:
         )  # (N*W, H, 3)
         n, h, w = len(sn.CAMERA_NAMES), cfg.image_height, cfg.image_width
         images = cam.to_uint8(rgb).reshape(n, w, h, 3).transpose(0, 2, 1, 3)  # (N, H, W, 3)
-        cam_points = rn.hit_points_ego(hits, pose, pos, az, slopes)
-        cam_points = cam_points.reshape(n, w, h, 3).transpose(0, 2, 1, 3)  # (N, H, W, 3) ego
-        cam_kind = hits["kind"].reshape(n, w, h).transpose(0, 2, 1)
 
         lpos, laz, lslopes = self._lidar
         lhits = rn.march(
             patch, pose, lpos, laz, lslopes, self._dists, self._steps, cfg.max_range, res
         )
-        lpts = rn.hit_points_ego(lhits, pose, lpos, laz, lslopes)  # (A, beams, 3)
+        lpts = rn.hit_points_ego(lhits, lpos, laz, lslopes)  # (A, beams, 3)
         lid = ld.returns(
             lhits,
             lpts,
@@ -87,44 +93,39 @@ class Simulator:
             intensity_noise=cfg.intensity_noise,
             max_range=cfg.max_range,
         )
-        return {
-            "images": images,
-            "cam_points": cam_points,
-            "cam_kind": cam_kind,
-            "lidar": lid["points"],
-            "lidar_valid": lid["valid"],
-            "lidar_thing": lid["thing"],
-        }
+        out = {"images": images, "lidar": lid["points"], "lidar_valid": lid["valid"]}
+        if diagnostics:  # ground truth for tests and benchmarks, never stored
+            cam_points = rn.hit_points_ego(hits, pos, az, slopes)  # (N*W, H, 3) ego
+            out["cam_points"] = cam_points.reshape(n, w, h, 3).transpose(0, 2, 1, 3)
+            out["cam_kind"] = hits["kind"].reshape(n, w, h).transpose(0, 2, 1)
+            out["lidar_thing"] = lid["thing"]
+        return out
 
     # ------------------------------------------------------------------ host side
 
     def _patch(self, pose) -> tuple[dict, np.ndarray, np.ndarray]:
         """Crop around ``pose``: layers (P, P), patch-local pose (3,), cell offset (2,)."""
-        g, p = self.world.grid, self.patch_size
-        row_c, col_c = g.snap_to_corner(pose[0], pose[1])
-        row0, col0 = int(row_c) - p // 2, int(col_c) - p // 2
-        r0, r1 = max(row0, 0), min(row0 + p, g.height)
-        c0, c1 = max(col0, 0), min(col0 + p, g.width)
-        if r0 >= r1 or c0 >= c1:
+        grid, p = self.world.grid, self.patch_size
+        row0, col0, _, _ = geometry.tile_window(grid, pose[0], pose[1], p)
+        row0, col0 = int(row0), int(col0)
+        if row0 >= grid.height or col0 >= grid.width or row0 + p <= 0 or col0 + p <= 0:
             raise ValueError(
                 f"world {self.world.name!r}: pose {tuple(pose)} is outside the world "
-                f"raster (bounds {g.bounds})"
+                f"raster (bounds {grid.bounds})"
             )
-        layers = {}
-        for name in _LAYERS:
-            src = getattr(self.world, name)
-            out = np.zeros((p, p), src.dtype)
-            out[r0 - row0 : r1 - row0, c0 - col0 : c1 - col0] = src[r0:r1, c0:c1]
-            layers[name] = out
-        x0, y0 = g.pixel_to_world(row0, col0)  # patch north-west corner, world metres
+        layers = {name: geometry.crop(getattr(self.world, name), row0, col0, p) for name in _LAYERS}
+        x0, y0 = grid.pixel_to_world(row0, col0)  # patch north-west corner, world metres
         local = np.array([pose[0] - x0, pose[1] - y0, pose[2]], np.float32)
         return layers, local, np.array([row0, col0], np.int32)
 
-    def render_arrays(self, poses, seed: int) -> dict:
+    def render_arrays(self, poses, seed: int, *, diagnostics: bool = False) -> dict:
         """Batched NumPy outputs for ``poses`` (B, 3): ``images`` (B, N, H, W, 3) uint8,
+        ``lidar`` (B, A*beams, 4) and ``lidar_valid`` (B, A*beams) bool.
+
+        ``diagnostics`` also returns what only tests and benchmarks read (computed only then):
         ``cam_points`` (B, N, H, W, 3) ego-frame hit point per pixel, ``cam_kind`` (B, N, H, W)
-        (render.SKY / GROUND / THING), ``lidar`` (B, A*beams, 4), ``lidar_valid``,
-        ``lidar_thing`` (B, A*beams)."""
+        (render.SKY / GROUND / THING) and ``lidar_thing`` (B, A*beams) object class per return.
+        The shared outputs are the same with or without it."""
         poses = np.asarray(poses, np.float64).reshape(-1, 3)
         b = len(poses)
         if b == 0:
@@ -144,7 +145,7 @@ class Simulator:
             keys = jax.vmap(lambda i, base=base: jax.random.fold_in(base, i))(
                 jnp.arange(start, start + chunk)
             )
-            out = self._render(
+            out = self._renderer(diagnostics)(
                 {k: np.stack([f[0][k] for f in frames]) for k in _LAYERS},
                 np.stack([f[1] for f in frames]),
                 np.stack([f[2] for f in frames]),
@@ -155,8 +156,9 @@ class Simulator:
         return {k: np.concatenate([o[k] for o in outs])[:b] for k in outs[0]}
 
     def render(self, poses, seed: int, sample_ids=None) -> list[dict]:
-        """One sample dict (``schema.SAMPLE_KEYS``) per pose; ``sample_id`` defaults to
-        ``"{city}-{seed}-{i:04d}"``."""
+        """One sample dict (keys ``sample_id``, ``city``, ``pose``, ``images``, ``intrinsics``,
+        ``cam_to_ego``, ``lidar``: ``data.schema.SAMPLE_KEYS``) per pose; ``sample_id``
+        defaults to ``"{city}-{seed}-{i:04d}"``."""
         poses = np.asarray(poses, np.float64).reshape(-1, 3)
         arrays = self.render_arrays(poses, seed)
         samples = []
@@ -171,5 +173,5 @@ class Simulator:
                 "cam_to_ego": self.cam_to_ego.copy(),
                 "lidar": np.ascontiguousarray(arrays["lidar"][i][arrays["lidar_valid"][i]]),
             }
-            samples.append(check_sample(sample, where=f"simulator {sid}"))
+            samples.append(sample)
         return samples

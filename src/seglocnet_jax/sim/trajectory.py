@@ -35,7 +35,8 @@ class RoadGraph:
     weights: np.ndarray  # (A,) arc lengths, for uniform sampling over the network
 
 
-def _lane_offsets(road, reverse: bool) -> tuple[float, ...]:
+def _lane_offsets(road) -> tuple[float, ...]:
+    """Lane centres (metres right of the travel direction) of one direction of ``road``."""
     if road.oneway:
         lane_w = road.width / road.lanes
         return tuple(road.width / 2 - (j + 0.5) * lane_w for j in range(road.lanes))
@@ -44,7 +45,7 @@ def _lane_offsets(road, reverse: bool) -> tuple[float, ...]:
 
 
 def build_graph(roads) -> RoadGraph:
-    """The directed road graph of ``roads`` (oneway respected: 1 along, -1 against)."""
+    """The directed road graph of ``roads`` (one-way roads only along their centreline)."""
     keys = [np.round(r.centerline * 100).astype(np.int64) for r in roads]
     count: dict[tuple, int] = {}
     for k in keys:
@@ -62,29 +63,11 @@ def build_graph(roads) -> RoadGraph:
             seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
             if seg.sum() < 0.5:
                 continue
-            if road.oneway >= 0:
-                arcs.append(
-                    Arc(
-                        pts,
-                        np.concatenate([[0.0], np.cumsum(seg)]),
-                        u,
-                        v,
-                        edge,
-                        _lane_offsets(road, False),
-                    )
-                )
-            if road.oneway <= 0:
-                rev = pts[::-1]
-                arcs.append(
-                    Arc(
-                        rev,
-                        np.concatenate([[0.0], np.cumsum(seg[::-1])]),
-                        v,
-                        u,
-                        edge,
-                        _lane_offsets(road, True),
-                    )
-                )
+            lanes = _lane_offsets(road)
+            arcs.append(Arc(pts, np.concatenate([[0.0], np.cumsum(seg)]), u, v, edge, lanes))
+            if not road.oneway:
+                rev_cum = np.concatenate([[0.0], np.cumsum(seg[::-1])])
+                arcs.append(Arc(pts[::-1], rev_cum, v, u, edge, lanes))
             edge += 1
     out: dict[int, list[int]] = {}
     for i, arc in enumerate(arcs):

@@ -16,12 +16,12 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import rasterio.features
 import shapely
-from affine import Affine
 from tqdm.auto import tqdm
 
 from seglocnet_jax.geometry import RasterGrid
+from seglocnet_jax.maps import osm
+from seglocnet_jax.maps.raster import rasterize_geometries
 from seglocnet_jax.sim import distractors as dis
 from seglocnet_jax.sim import roads as rd
 from seglocnet_jax.sim.classes import Surface, Thing
@@ -107,15 +107,14 @@ class World:
     graph: object = dataclasses.field(default=None, repr=False)
 
 
-def building_height(feature, rng: np.random.Generator, cfg: WorldConfig) -> float:
-    """Metres from ``height``, else ``building:levels`` x storey, else seeded levels."""
-    h = rd.parse_number(rd.tag(feature, "height"))
-    if h is not None and 2.0 <= h <= 300.0:
-        return h
-    levels = rd.parse_number(rd.tag(feature, "building:levels"))
-    if levels is None or not 1 <= levels <= 80:
+def building_height(building, rng: np.random.Generator, cfg: WorldConfig) -> float:
+    """Metres from the OSM tags (:func:`seglocnet_jax.maps.osm.building_height`), else a
+    seeded number of ``cfg.default_levels``."""
+    h = osm.building_height(building, cfg.level_height)
+    if h is None:
         levels = rng.integers(cfg.default_levels[0], cfg.default_levels[1] + 1)
-    return float(levels) * cfg.level_height + 1.0
+        h = osm.levels_height(levels, cfg.level_height)
+    return h
 
 
 def _world_buildings(city_buildings, drivable, rng, cfg: WorldConfig):
@@ -151,31 +150,25 @@ def _world_buildings(city_buildings, drivable, rng, cfg: WorldConfig):
             if occupied.intersects(box):
                 continue
             polys.append(box)
-            heights.append(float(rng.integers(*cfg.default_levels)) * cfg.level_height + 1.0)
+            heights.append(osm.levels_height(rng.integers(*cfg.default_levels), cfg.level_height))
             occupied = occupied.union(box)
             added += 1
     return polys, np.asarray(heights, np.float64), np.asarray(kept, np.int64)
 
 
-def _burn(grid: RasterGrid, shapes, dtype, fill=0, all_touched=False) -> np.ndarray:
-    shapes = [(g, v) for g, v in shapes if g is not None and not g.is_empty]
-    out = np.full((grid.height, grid.width), fill, dtype)
-    if shapes:
-        rasterio.features.rasterize(
-            shapes, out=out, transform=Affine(*grid.affine()), all_touched=all_touched
-        )
-    return out
-
-
 def build_world_from_city(name: str, city, cfg: WorldConfig, seed: int) -> World:
-    """Builds the world of ``city`` (an object with ``.roads``, ``.buildings``, ``.bounds`` as
-    :func:`seglocnet_jax.maps.load_city` returns), seeded by ``(seed, name)``."""
+    """Builds the world of ``city`` (a :class:`seglocnet_jax.maps.CityGeometry`, or an object
+    with its ``roads`` (``geometry``, ``highway``, ``lanes``, ``width``, ``oneway``),
+    ``buildings`` (``geometry``, ``height``, ``levels``) and ``bounds``), seeded by
+    ``(seed, name)``."""
     rng = np.random.default_rng([seed, *name.encode()])
     field = rd.OffsetField(rng, cfg.offset_min, cfg.offset_max, cfg.offset_wavelength)
     steps = tqdm(total=6, desc=f"world {name}", unit="step", leave=False)
     roads = rd.build_roads(city.roads, field)
     if not roads:
-        raise ValueError(f"city {name!r}: no drivable roads (highway in {sorted(rd.ROAD_CLASSES)})")
+        raise ValueError(
+            f"city {name!r}: no drivable roads (highway in {sorted(osm.DRIVABLE_HIGHWAYS)})"
+        )
     drivable = rd.drivable_area(roads)
     steps.update()
     polys, heights, kept = _world_buildings(city.buildings, drivable, rng, cfg)
@@ -184,12 +177,12 @@ def build_world_from_city(name: str, city, cfg: WorldConfig, seed: int) -> World
 
     sidewalk = rd.sidewalk_area(roads, cfg.sidewalk_width)
     marks = [ln for r in roads for ln in rd.marking_lines(r, rng)]
-    surface = _burn(
-        grid, [(sidewalk, int(Surface.SIDEWALK)), (drivable, int(Surface.ROAD))], np.uint8
-    )
+    surface = np.full((grid.height, grid.width), Surface.OTHER, np.uint8)
+    surface[rasterize_geometries(sidewalk, grid) > 0] = Surface.SIDEWALK
+    surface[rasterize_geometries(drivable, grid) > 0] = Surface.ROAD
     if marks:  # paint stays on the carriageway
         paint = shapely.buffer(np.array(marks, dtype=object), 0.08, cap_style="flat")
-        painted = _burn(grid, [(g, 1) for g in paint], np.uint8, all_touched=True) > 0
+        painted = rasterize_geometries(paint, grid, all_touched=True) > 0
         surface[painted & (surface == Surface.ROAD)] = Surface.MARKING
     steps.update()
 
@@ -197,13 +190,8 @@ def build_world_from_city(name: str, city, cfg: WorldConfig, seed: int) -> World
     steps.update()
     # One id raster: buildings 1..Nb, distractor parts after them.
     n_b = len(polys)
-    ids = _burn(
-        grid,
-        [(p, i + 1) for i, p in enumerate(polys)]
-        + [(g, n_b + 1 + j) for j, g in enumerate(objs.geoms)],
-        np.int32,
-        all_touched=False,
-    )
+    shapes = [*polys, *objs.geoms]
+    ids = rasterize_geometries(shapes, grid, values=range(1, len(shapes) + 1), dtype=np.int32)
     steps.update()
     palette_ids = rng.integers(0, 256, size=n_b)
     lut_thing = np.concatenate([[0], np.full(n_b, Thing.BUILDING), objs.thing]).astype(np.uint8)

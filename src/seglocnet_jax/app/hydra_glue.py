@@ -1,6 +1,6 @@
 """The one seam to Hydra: config location, resolvers, DictConfig -> plain dict, distributed init.
 
-Library modules never import this; only the ``__main__`` entry points do.
+Only the app floor and the ``__main__`` entry points import this; the library never does.
 """
 
 from __future__ import annotations

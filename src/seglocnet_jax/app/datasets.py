@@ -1,0 +1,53 @@
+"""Dataset acquisition for a run: the simulator's dataset is prepared (or resumed, or checked)
+and real data is converted on first use; either way with every map variant the config asks for
+(``data.map_variants`` / ``dataset.convert.map_variants``) plus the run's own ``map``."""
+
+from __future__ import annotations
+
+import os
+
+from seglocnet_jax.app.schema import ExperimentConfig
+from seglocnet_jax.data import prepare as prepare_lib
+
+
+def prepare_dataset(cfg: ExperimentConfig) -> str:
+    """Prepares what is missing and returns the dataset directory (progress shown)."""
+    if cfg.dataset is not None:
+        return _prepare_real(cfg)
+    dataset_dir, _ = prepare_lib.prepare_for_training(cfg.data, cfg.map)
+    return dataset_dir
+
+
+def _prepare_real(cfg: ExperimentConfig) -> str:
+    from seglocnet_jax.data import real_convert
+
+    reader_cls, reader_cfg, convert_cfg = real_convert.parse_tree(cfg.dataset)
+    dataset_dir = os.path.join(convert_cfg.root, convert_cfg.name)
+    if _converted(dataset_dir, cfg.map):
+        return dataset_dir
+    dataroot = reader_cfg.dataroot
+    if not os.path.isdir(dataroot):
+        raise FileNotFoundError(
+            f"experiment {cfg.name!r}: data directory {dataroot!r} (dataset.reader.dataroot) "
+            f"does not exist and {dataset_dir!r} holds no converted dataset with map variant "
+            f"{cfg.map.name!r}. Put the {cfg.dataset['source']} data there or pass "
+            "dataset.reader.dataroot=PATH; the first run converts it (README, 'Using real data')"
+        )
+    dataset_dir, _ = real_convert.convert_for_training(reader_cls(reader_cfg), convert_cfg, cfg.map)
+    return dataset_dir
+
+
+def _converted(dataset_dir: str, variant) -> bool:
+    """Whether ``dataset_dir`` holds a complete conversion with ``variant`` for every city."""
+    from seglocnet_jax.data import manifest as mf
+    from seglocnet_jax.data.variants import variant_path
+
+    if not os.path.isfile(mf.manifest_path(dataset_dir)):
+        return False
+    man = mf.read_manifest(dataset_dir)
+    if not man.get("complete") or not prepare_lib.all_shards_exist(man, dataset_dir):
+        return False
+    if variant.name not in man["map_variants"]:
+        return False
+    cities = {c for sp in man["splits"].values() for c in sp["cities"]}
+    return all(os.path.exists(variant_path(dataset_dir, variant.name, c)) for c in cities)

@@ -1,0 +1,229 @@
+"""Run directories: identity, lock, results.
+
+A run directory holds ``config.json`` (the resolved typed config that made it), a lock while a
+process works in it, checkpoints, logs, figures and ``results.json``. A run resumes only when the
+config that defines it is the same as the stored one; otherwise the run stops and names the keys
+that differ (``train.restart=true`` moves the old checkpoints aside and starts over instead).
+What does not define a run (how often to log, how many devices, where the data root lives, the
+final evaluation's options) may change between a run and its resumption.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+
+from seglocnet_jax import fileio, metrics
+from seglocnet_jax.app.schema import ExperimentConfig
+from seglocnet_jax.config_util import ConfigError
+from seglocnet_jax.training import checkpoint as ckpt_lib
+
+RUN_CONFIG = "config.json"
+RESULTS = "results.json"
+
+# Flattened keys that do not define a run (prefix match on whole key components).
+NOT_DEFINING = (
+    "eval",
+    "train.log_every",
+    "train.eval_every",
+    "train.num_devices",
+    "train.restart",
+    "train.checkpoint.keep_last",
+    "loader.num_threads",
+    "loader.prefetch",
+    "loader.worker_count",
+    "data.root",
+    "dataset.convert.root",
+    "dataset.reader.dataroot",
+)
+
+
+def progress(msg: str) -> None:
+    print(f"[seglocnet] {msg}", flush=True)
+
+
+def config_dict(cfg: ExperimentConfig) -> dict:
+    """The typed config as plain JSON types."""
+    return json.loads(json.dumps(dataclasses.asdict(cfg)))
+
+
+def flatten(tree, prefix: str = "") -> dict:
+    if isinstance(tree, dict) and tree:
+        out = {}
+        for k, v in tree.items():
+            out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    return {prefix: tree}
+
+
+def _defining(flat: dict) -> dict:
+    def keep(key):
+        return not any(key == p or key.startswith(p + ".") for p in NOT_DEFINING)
+
+    return {k: v for k, v in flat.items() if keep(k)}
+
+
+def config_diff(stored: dict, current: dict, only: str | None = None) -> list[str]:
+    """``key: stored -> current`` lines for the defining keys that differ (``only``: a prefix
+    such as ``"model"``)."""
+    a, b = _defining(flatten(stored)), _defining(flatten(current))
+    lines = []
+    for key in sorted(set(a) | set(b)):
+        if only and not (key == only or key.startswith(only + ".")):
+            continue
+        if a.get(key, "<absent>") != b.get(key, "<absent>"):
+            lines.append(f"{key}: {a.get(key, '<absent>')!r} -> {b.get(key, '<absent>')!r}")
+    return lines
+
+
+def read_run_config(workdir: str) -> dict | None:
+    path = os.path.join(workdir, RUN_CONFIG)
+    if not os.path.exists(path):
+        return None
+    try:
+        with open(path) as f:
+            return json.load(f)["config"]
+    except (OSError, ValueError, KeyError) as err:
+        raise ConfigError(
+            f"{path}: unreadable run config ({err}); delete it only if you know "
+            "which config made this run"
+        ) from err
+
+
+def _has_checkpoints(workdir: str) -> bool:
+    root = os.path.join(workdir, "checkpoints")
+    return (
+        any(
+            os.path.isdir(os.path.join(root, sub)) and os.listdir(os.path.join(root, sub))
+            for sub in ("last", "best")
+        )
+        if os.path.isdir(root)
+        else False
+    )
+
+
+class RunDir:
+    """The run directory of one process: locked for its lifetime, identity checked."""
+
+    def __init__(self, workdir: str, cfg: ExperimentConfig, what: str):
+        self.workdir = os.path.abspath(workdir)
+        self.cfg = cfg
+        self.what = what
+        os.makedirs(self.workdir, exist_ok=True)
+        self.lock = fileio.DirLock(self.workdir, what)
+
+    def __enter__(self) -> RunDir:
+        self.lock.acquire()
+        if self.lock.previous:
+            progress(
+                f"took over the lock of {self.workdir} from pid {self.lock.previous.get('pid')} "
+                "(no longer running)"
+            )
+        removed = fileio.clean_stale_tmp(self.workdir)
+        if removed:
+            progress(f"removed {len(removed)} temporary file(s) left by a killed run")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.lock.release()
+
+    def check_identity(self, restart: bool) -> None:
+        """Refuses to resume checkpoints made with another defining config (or with an unknown
+        one); with ``restart`` moves them aside instead. Then stores this config."""
+        current = config_dict(self.cfg)
+        stored = read_run_config(self.workdir)
+        if _has_checkpoints(self.workdir):
+            if stored is None:
+                problem = (
+                    f"{self.workdir} holds checkpoints but no {RUN_CONFIG}, so the config "
+                    "that made them is unknown"
+                )
+            else:
+                diff = config_diff(stored, current)
+                problem = (
+                    (
+                        f"{self.workdir} holds a run made with another config; it would resume "
+                        "with these keys changed (stored -> now):\n  " + "\n  ".join(diff)
+                    )
+                    if diff
+                    else None
+                )
+            if problem and not restart:
+                raise ConfigError(
+                    f"{problem}\nStart a new run in another directory (hydra.run.dir=PATH, or "
+                    "change the settings that name the run directory) or rerun with "
+                    "train.restart=true to move the old checkpoints aside and start over"
+                )
+            if problem:
+                moved = ckpt_lib.archive_checkpoints(self.workdir)
+                progress(f"train.restart=true: moved the old checkpoints to {moved}")
+        self.write_config()
+
+    def restart_after_unusable(self) -> str:
+        moved = ckpt_lib.archive_checkpoints(self.workdir)
+        progress(f"train.restart=true: moved the unusable checkpoints to {moved}")
+        return moved
+
+    def write_config(self) -> None:
+        fileio.write_json_atomic(
+            os.path.join(self.workdir, RUN_CONFIG),
+            {"config": config_dict(self.cfg), "written": time.strftime("%Y-%m-%dT%H:%M:%S")},
+        )
+
+
+def find_run_config(checkpoint: str) -> tuple[str, dict] | None:
+    """The ``config.json`` of the run a checkpoint path belongs to (searching upwards)."""
+    path = os.path.abspath(checkpoint)
+    for _ in range(5):
+        cand = os.path.join(path, RUN_CONFIG)
+        if os.path.isfile(cand):
+            return cand, read_run_config(path)
+        path = os.path.dirname(path)
+    return None
+
+
+def check_checkpoint_compatible(checkpoint: str, cfg: ExperimentConfig) -> None:
+    """The checkpoint's run must have the same network (``model.*``) and map channels: a
+    clear error naming the differing keys instead of a failed restore."""
+    found = find_run_config(checkpoint)
+    if found is None:
+        return  # a bare checkpoint: the restore itself checks the parameter tree
+    path, stored = found
+    current = config_dict(cfg)
+    diff = config_diff(stored, current, only="model") + config_diff(
+        stored, current, only="map.channels"
+    )
+    if diff:
+        raise ConfigError(
+            f"checkpoint={checkpoint!r} was trained with another network config ({path}); "
+            "stored -> now:\n  " + "\n  ".join(diff) + "\nPass the same overrides as the "
+            "training run (e.g. the same +exp=, model.*, map.channels)"
+        )
+
+
+def write_results(workdir: str, cfg: ExperimentConfig, results: dict, extra: dict) -> str:
+    """``<workdir>/results.json`` (atomic), with the config that produced the numbers."""
+    path = os.path.join(workdir, RESULTS)
+    payload = {
+        "experiment": cfg.name,
+        "variant": cfg.map.name,
+        "model_variant": cfg.model.variant,
+        "bev_source": cfg.eval.bev_source,
+        "splits": results,
+        **extra,
+        "config": config_dict(cfg),
+    }
+    fileio.write_json_atomic(path, payload, indent=2, sort_keys=False)
+    return path
+
+
+def format_table(cfg: ExperimentConfig, results: dict) -> str:
+    rows = []
+    source = "gt" if cfg.eval.bev_source == "gt" else f"{cfg.model.name}-{cfg.model.variant}"
+    for split, res in results.items():
+        rows.append((f"{cfg.name} [{cfg.map.name}, {source}] {split}", res))
+        if "prior" in res:
+            rows.append((f"prior alone (tile centre, no heading) {split}", res["prior"]))
+    return metrics.markdown_table(rows)

@@ -1,0 +1,208 @@
+"""The train run: prepare data, train with periodic validation and checkpoints, resume, and
+evaluate the final splits with the best checkpoint into the paper's table. Every evaluation
+(validation, best selection, tables, figures) goes through one cached localize step
+(:func:`seglocnet_jax.evaluation.make_localize_step`)."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import jax
+import numpy as np
+from tqdm import tqdm
+
+from seglocnet_jax import evaluation
+from seglocnet_jax.app import runs
+from seglocnet_jax.app.datasets import prepare_dataset
+from seglocnet_jax.app.schema import ExperimentConfig
+from seglocnet_jax.data import loader as loader_lib
+from seglocnet_jax.model import api as model_api
+from seglocnet_jax.training import checkpoint as ckpt_lib
+from seglocnet_jax.training import state as state_lib
+from seglocnet_jax.training import step as step_lib
+from seglocnet_jax.training.logger import MetricsLogger
+
+progress = runs.progress
+
+
+def init_state(cfg: ExperimentConfig, example_batch: dict):
+    """The initial train state (same for any mesh: params come from the seed only)."""
+    optimizer = state_lib.make_optimizer(cfg.train.optim_config())
+    init_key, train_key = jax.random.split(jax.random.key(cfg.train.seed))
+    params = model_api.init(init_key, example_batch, cfg.model)
+    return state_lib.TrainState.create(params, optimizer, train_key), optimizer
+
+
+class Evaluator:
+    """Split evaluation of one run: loaders made once per split, one localize step."""
+
+    def __init__(self, cfg: ExperimentConfig, dataset_dir: str, mesh, workdir: str):
+        self.cfg, self.dataset_dir, self.mesh, self.workdir = cfg, dataset_dir, mesh, workdir
+        self.step = evaluation.make_localize_step(cfg.model, cfg.solver, cfg.eval.bev_source)
+        self._loaders = {}
+        self.seconds = 0.0
+        self.rounds = 0
+
+    def loader(self, split: str):
+        if split not in self._loaders:
+            self._loaders[split] = loader_lib.make_loader(
+                self.dataset_dir,
+                split,
+                self.cfg.map.name,
+                self.cfg.eval.batch_size,
+                self.cfg.train.seed,
+                train=False,
+                config=self.cfg.loader,
+            )
+        return self._loaders[split]
+
+    def place(self, batch: dict) -> dict:
+        return step_lib.device_batch(batch, self.mesh)
+
+    def __call__(self, params, splits, *, max_batches=None, num_figures=0, tag="") -> dict:
+        t0 = time.time()
+        out = {}
+        for split in splits:
+            ld = self.loader(split)
+            n = ld.batches_per_epoch
+            n = n if max_batches is None else min(max_batches, n)
+            out[split] = evaluation.evaluate_split(
+                self.step,
+                params,
+                iter(ld),
+                num_batches=n,
+                place=self.place,
+                desc=f"eval {split}{tag}",
+                channels=self.cfg.map.channels,
+                figure_dir=os.path.join(self.workdir, "figures", split) if num_figures else None,
+                num_figures=num_figures,
+            )
+        self.seconds += time.time() - t0
+        self.rounds += 1
+        return out
+
+
+def train_and_evaluate(cfg: ExperimentConfig, workdir: str) -> dict:
+    """Runs the whole experiment in ``workdir``; resumes its latest checkpoint when the stored
+    config defines the same run (else stops naming the keys; ``train.restart=true`` starts
+    over, keeping the old checkpoints aside)."""
+    ckpt_lib.check_path(os.path.abspath(os.path.join(workdir, "checkpoints")))
+    with runs.RunDir(workdir, cfg, "training run") as run:
+        run.check_identity(cfg.train.restart)
+        return _train(cfg, run)
+
+
+def _train(cfg: ExperimentConfig, run: runs.RunDir) -> dict:
+    workdir = run.workdir
+    t_start = time.time()
+    dataset_dir = prepare_dataset(cfg)
+    t_data = time.time() - t_start
+    mesh = step_lib.make_mesh(cfg.train.num_devices)
+    train_loader = loader_lib.make_loader(
+        dataset_dir,
+        "train",
+        cfg.map.name,
+        cfg.train.batch_size,
+        cfg.train.seed,
+        train=True,
+        config=cfg.loader,
+    )
+    example = next(iter(train_loader))
+    state, optimizer = init_state(cfg, step_lib.device_batch(example, mesh))
+    data_iter = iter(train_loader)
+    ckpt = ckpt_lib.Checkpointer(workdir, cfg.train.checkpoint)
+    try:
+        restored = ckpt.restore_latest(jax.device_get(state))
+    except ckpt_lib.CheckpointError:
+        if not cfg.train.restart:
+            raise
+        ckpt.close()
+        run.restart_after_unusable()
+        ckpt = ckpt_lib.Checkpointer(workdir, cfg.train.checkpoint)
+        restored = None
+    if restored is not None:
+        state, data_state, step0 = restored
+        data_iter.set_state(data_state)
+        progress(f"resumed from {ckpt.last_dir}/{step0}")
+    elif cfg.train.init_from:  # fine-tuning: parameters only; fresh optimizer, step 0
+        source, source_step = ckpt_lib.restore_params(cfg.train.init_from, jax.device_get(state))
+        state = state.replace(params=source.params)
+        progress(f"initialized parameters from {cfg.train.init_from} (step {source_step})")
+    state = step_lib.replicate(state, mesh)
+    step = int(state.step)
+
+    train_step = step_lib.make_train_step(model_api.make_loss_fn(cfg.model), optimizer, mesh)
+    logger = MetricsLogger(workdir, enabled=jax.process_index() == 0, resume_step=step)
+    evaluate = Evaluator(cfg, dataset_dir, mesh, workdir)
+    t_train0 = time.time()
+    bar = tqdm(total=cfg.train.num_steps, initial=step, desc="train", unit="step")
+    t_last, n_last = time.time(), step
+    while step < cfg.train.num_steps:
+        batch = next(data_iter)
+        state, m = train_step(state, step_lib.device_batch(batch, mesh))
+        step += 1
+        bar.update(1)
+        if step % cfg.train.log_every == 0 or step == cfg.train.num_steps:
+            scalars = step_lib.to_host(m)
+            if not np.isfinite(scalars["loss"]):
+                raise FloatingPointError(
+                    f"loss is {scalars['loss']} at step {step} (run {workdir}); lower "
+                    "train.optim.learning_rate or check the data"
+                )
+            rate = (step - n_last) * cfg.train.batch_size / max(time.time() - t_last, 1e-9)
+            t_last, n_last = time.time(), step
+            scalars["samples_per_s"] = rate
+            bar.set_postfix(loss=f"{scalars['loss']:.4f}", sps=f"{rate:.1f}")
+            logger.write(step, "train", scalars)
+        val = None
+        periodic = cfg.train.eval_every and step % cfg.train.eval_every == 0
+        if periodic or step == cfg.train.num_steps:
+            tag = f" @{step}" if step < cfg.train.num_steps else " final"
+            val = evaluate(state.params, ["val"], max_batches=cfg.train.val_batches, tag=tag)
+            val = val["val"]
+            logger.write(step, "val", val)
+        if (
+            step % cfg.train.checkpoint.every_steps == 0
+            or val is not None
+            or step == cfg.train.num_steps
+        ):
+            ckpt.save(step, jax.device_get(state), data_iter.get_state(), metrics=val)
+    bar.close()
+    ckpt.close()
+    t_loop = time.time() - t_train0
+    t_val = evaluate.seconds
+    # The final splits are evaluated with the best checkpoint by validation (as `evaluate` does).
+    best, best_step = ckpt_lib.restore_params(ckpt.best_dir, jax.device_get(state))
+    progress(
+        f"evaluating the best checkpoint by validation {cfg.train.checkpoint.best_metric}: "
+        f"step {best_step}"
+    )
+    t_final0 = time.time()
+    results = evaluate(
+        step_lib.replicate(best.params, mesh),
+        cfg.eval.splits,
+        max_batches=cfg.eval.max_batches,
+        num_figures=cfg.eval.num_figures,
+    )
+    t_final = time.time() - t_final0
+    for split, res in results.items():
+        logger.write(step, split, res)
+    logger.close()
+    timing = {
+        "data_preparation_s": round(t_data, 1),
+        "training_s": round(t_loop - t_val, 1),
+        "validation_s": round(t_val, 1),
+        "final_evaluation_s": round(t_final, 1),
+        "total_s": round(time.time() - t_start, 1),
+    }
+    runs.write_results(
+        workdir, cfg, results, {"steps": step, "best_step": best_step, "time": timing}
+    )
+    print(runs.format_table(cfg, results), flush=True)
+    progress(
+        "time: data preparation {data_preparation_s:.0f} s, training {training_s:.0f} s, "
+        "validation {validation_s:.0f} s, final evaluation {final_evaluation_s:.0f} s, "
+        "total {total_s:.0f} s".format(**timing)
+    )
+    return results
