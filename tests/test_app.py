@@ -245,7 +245,9 @@ def test_rerun_with_another_config_is_refused_not_relabelled(data_root, tmp_path
     tree = _tree(data_root, seed=1, restart=True)
     train_run.train_and_evaluate(build_experiment(tree), workdir)
     assert json.load(open(os.path.join(workdir, "results.json")))["config"]["train"]["seed"] == 1
-    assert [d for d in os.listdir(workdir) if d.startswith("checkpoints.discarded-")]
+    (old,) = [d for d in os.listdir(workdir) if d.startswith("checkpoints.discarded-")]
+    kept = json.load(open(os.path.join(workdir, old, "run_files", "results.json")))
+    assert kept["splits"] == first["splits"]  # the seed-0 run's numbers are kept, not relabelled
 
 
 def test_evaluating_with_another_model_config_names_the_keys(data_root, tmp_path):

@@ -22,6 +22,7 @@ from seglocnet_jax.training import checkpoint as ckpt_lib
 
 RUN_CONFIG = "config.json"
 RESULTS = "results.json"
+ARCHIVED_WITH_CHECKPOINTS = (RUN_CONFIG, RESULTS, "metrics.jsonl", "tb", "figures")
 
 # Flattened keys that do not define a run (prefix match on whole key components).
 NOT_DEFINING = (
@@ -157,13 +158,23 @@ class RunDir:
                     "train.restart=true to move the old checkpoints aside and start over"
                 )
             if problem:
-                moved = ckpt_lib.archive_checkpoints(self.workdir)
-                progress(f"train.restart=true: moved the old checkpoints to {moved}")
+                self.archive("the old run")
         self.write_config()
 
-    def restart_after_unusable(self) -> str:
+    def archive(self, what: str) -> str | None:
+        """Moves the checkpoints aside (``checkpoints.discarded-<time>``) and with them the
+        old run's logs, figures and results (``.../run_files``): nothing is lost, nothing is
+        relabelled by the new run."""
         moved = ckpt_lib.archive_checkpoints(self.workdir)
-        progress(f"train.restart=true: moved the unusable checkpoints to {moved}")
+        if moved is None:
+            return None
+        keep = os.path.join(moved, "run_files")
+        for name in ARCHIVED_WITH_CHECKPOINTS:
+            src = os.path.join(self.workdir, name)
+            if os.path.exists(src):
+                os.makedirs(keep, exist_ok=True)
+                os.rename(src, os.path.join(keep, name))
+        progress(f"train.restart=true: moved {what} (checkpoints, logs, results) to {moved}")
         return moved
 
     def write_config(self) -> None:
