@@ -100,11 +100,13 @@ def drivable_polygons():
     return out + [(plaza, [hole])]
 
 
-def write_osm(path: str, to_lonlat, warp=None) -> None:
+def write_osm(path: str, to_lonlat, warp=None, origins=((0.0, 0.0),)) -> None:
     """An OSM XML extract of the fixture's roads (centrelines) and buildings.
 
     ``to_lonlat(x, y)`` is the dataset frame's inverse projection; ``warp(xy (N, 2))`` moves the
-    world points first (a synthetic OSM misalignment).
+    world points first (a synthetic OSM misalignment). ``origins``: the fixture's map is written
+    once per origin (world metres added to every point before ``warp``), e.g. around each log of
+    :func:`write_argoverse` ``(origins=...)``; leave one out for an area without OSM.
     """
     warp = warp or (lambda xy: xy)
     lines = ['<?xml version="1.0" encoding="UTF-8"?>', '<osm version="0.6" generator="fixture">']
@@ -121,12 +123,15 @@ def write_osm(path: str, to_lonlat, warp=None) -> None:
             ids.append(node_id)
         return ids
 
-    for a, b in ROADS:
-        pts = [np.asarray(a) + t * (np.asarray(b) - np.asarray(a)) for t in np.linspace(0, 1, 5)]
-        ways.append((nodes(pts), {"highway": "residential"}))
-    for x0, y0, x1, y1 in BUILDINGS:
-        ids = nodes([(x0, y0), (x1, y0), (x1, y1), (x0, y1)])
-        ways.append((ids + ids[:1], {"building": "yes"}))
+    for ox, oy in origins:
+        o = np.array([ox, oy], np.float64)
+        for a, b in ROADS:
+            a, b = np.asarray(a) + o, np.asarray(b) + o
+            pts = [a + t * (b - a) for t in np.linspace(0, 1, 5)]
+            ways.append((nodes(pts), {"highway": "residential"}))
+        for x0, y0, x1, y1 in BUILDINGS:
+            ids = nodes(np.array([(x0, y0), (x1, y0), (x1, y1), (x0, y1)]) + o)
+            ways.append((ids + ids[:1], {"building": "yes"}))
     for i, (ids, tags) in enumerate(ways):
         lines.append(f' <way id="{1000 + i}" version="1">')
         lines += [f'  <nd ref="{n}"/>' for n in ids]
@@ -346,11 +351,18 @@ AV2_CAM_DT = 10_000_000  # cameras fire 10 ms after each sweep
 AV2_EGO_SPEED = 10.0  # m/s along +x
 
 
-def write_argoverse(root: str) -> dict:
-    """Writes the AV2 fixture under ``root/{train,val}``; returns facts for the tests."""
+def write_argoverse(root: str, logs: dict | None = None, origins: dict | None = None) -> dict:
+    """Writes the AV2 fixture under ``root/{train,val}``; returns facts for the tests.
+
+    ``logs``: split -> ``[(log id, city, start x)]`` (default :data:`AV2_LOGS`); ``origins``:
+    log id -> ``(x, y)`` metres added to that log's trajectory and map (default 0), so logs of
+    one city can lie kilometres apart.
+    """
     facts = {"poses": {}, "lidar": {}}
-    for split, logs in AV2_LOGS.items():
-        for log_id, city, x_start in logs:
+    origins = origins or {}
+    for split, split_logs in (AV2_LOGS if logs is None else logs).items():
+        for log_id, city, x_start in split_logs:
+            ox, oy = origins.get(log_id, (0.0, 0.0))
             d = os.path.join(root, split, log_id)
             t0 = 315_969_000_000_000_000
             sweeps = [t0 + k * 100_000_000 for k in range(AV2_SWEEPS)]
@@ -359,10 +371,10 @@ def write_argoverse(root: str) -> dict:
             for t in times:
                 x = x_start + AV2_EGO_SPEED * (t - t0) / 1e9
                 q = quat_wxyz(rot_z(0.02))
-                for key, v in zip(rows, [t, *q, x, ROAD_Y, 0.0], strict=True):
+                for key, v in zip(rows, [t, *q, x + ox, ROAD_Y + oy, 0.0], strict=True):
                     rows[key].append(v)
                 if t in sweeps:
-                    facts["poses"][f"{log_id}/{t}"] = np.array([x, ROAD_Y, 0.02])
+                    facts["poses"][f"{log_id}/{t}"] = np.array([x + ox, ROAD_Y + oy, 0.02])
             _feather(os.path.join(d, "city_SE3_egovehicle.feather"), rows)
             ext = {c: [] for c in ("sensor_name", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")}
             intr = {
@@ -425,7 +437,8 @@ def write_argoverse(root: str) -> dict:
                 os.makedirs(os.path.dirname(path), exist_ok=True)
                 feather.write_feather(table, path)
             _write_av2_map(
-                os.path.join(d, "map", f"log_map_archive_{log_id}____{city}_city_00000.json")
+                os.path.join(d, "map", f"log_map_archive_{log_id}____{city}_city_00000.json"),
+                (ox, oy),
             )
     return facts
 
@@ -435,7 +448,8 @@ def _feather(path: str, columns: dict) -> None:
     feather.write_feather(pa.table(columns), path)
 
 
-def _write_av2_map(path: str) -> None:
+def _write_av2_map(path: str, origin=(0.0, 0.0)) -> None:
+    ox, oy = origin
     areas = {}
     polys = drivable_polygons()
     for i, (shell, _holes) in enumerate(polys):  # AV2 areas have no holes
@@ -452,7 +466,7 @@ def _write_av2_map(path: str) -> None:
             aid = len(areas) + 1
             areas[str(aid)] = {
                 "id": aid,
-                "area_boundary": [{"x": x, "y": y, "z": 0.0} for x, y in ring],
+                "area_boundary": [{"x": x + ox, "y": y + oy, "z": 0.0} for x, y in ring],
             }
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w") as f:

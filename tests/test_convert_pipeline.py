@@ -86,10 +86,14 @@ def test_similarity_fit_recovers_a_known_scale():
     inv = np.linalg.inv(truth.matrix())
     lines = [LineString(np.c_[r, np.ones(2)] @ inv[:2].T).buffer(4.0) for r in fx.ROADS]
     source = maps.rasterize_geometries(lines, grid)
-    cfg = dataclasses.replace(FAST_ALIGN, max_rotation_deg=0.0, scales=(0.99, 1.0, 1.01))
+    cfg = dataclasses.replace(FAST_ALIGN, max_rotation_deg=0.0, scales=(0.99, 1.0, 1.01, 1.02))
     fit = ra.fit_similarity(target, source, grid, cfg, progress=False)
     assert fit.scale == 1.01
     assert np.abs(fit.apply(PROBES) - truth.apply(PROBES)).max() < 0.5
+    # The best scale at the end of the searched ones is refused: the truth may lie beyond.
+    short = dataclasses.replace(cfg, scales=(0.99, 1.0, 1.01))
+    with pytest.raises(ra.AlignmentError, match=r"scale 1\.0100 on the search bound"):
+        ra.fit_similarity(target, source, grid, short, progress=False)
 
 
 def test_nuscenes_converts_to_records_and_rasters_the_loader_reads(tmp_path):

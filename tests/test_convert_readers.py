@@ -9,10 +9,11 @@ import pytest
 from shapely.geometry import Point
 
 import fixtures_real as fx
+import fixtures_real_camera as fc
 from seglocnet_jax.data import argoverse as av
 from seglocnet_jax.data import nuscenes as nu
 from seglocnet_jax.data import real_common as rc
-from seglocnet_jax.data.schema import check_sample
+from seglocnet_jax.data.schema import EGO_HEIGHT_M, check_sample
 
 OUT_HW = (12, 20)  # half the fixture's 24 x 40 images
 
@@ -151,14 +152,15 @@ def test_argoverse_sample_has_chosen_cameras_and_ego_lidar(av2):
     mean = s["images"].reshape(6, -1, 3).mean(axis=1)
     np.testing.assert_allclose(mean, np.array(fx.CAM_COLOURS[1:7]), atol=6)
     pts = facts["lidar"][s["sample_id"]]
-    np.testing.assert_allclose(s["lidar"][:, :3], pts[:, :3].astype(np.float16), atol=1e-6)
+    lift = np.array([0.0, 0.0, EGO_HEIGHT_M["av2"]], np.float32)  # ego origin onto the ground
+    np.testing.assert_allclose(s["lidar"][:, :3], pts[:, :3].astype(np.float16) + lift, atol=1e-5)
     np.testing.assert_allclose(s["lidar"][:, 3], np.floor(pts[:, 3]) / 255.0, atol=1e-6)
     # Cameras fire 10 ms after the sweep: the ego moved 0.1 m east while heading 0.02 rad.
     moved = 0.1 * np.array([math.cos(0.02), -math.sin(0.02), 0.0])
     for i, yaw in enumerate(fx.camera_yaws(7)[1:]):
         t = s["cam_to_ego"][i]
         np.testing.assert_allclose(t[:3, :3], fx.rot_z(yaw) @ fx.CAM_FORWARD, atol=1e-6)
-        np.testing.assert_allclose(t[:3, 3], [1.0, 0.0, 1.5] + moved, atol=1e-5)
+        np.testing.assert_allclose(t[:3, 3], [1.0, 0.0, 1.5] + moved + lift, atol=1e-5)
     assert math.isclose(s["pose"][2], 0.02, abs_tol=1e-9)
 
 
@@ -174,3 +176,65 @@ def test_argoverse_missing_calibration_is_named(tmp_path):
         reader.frames("val")
     with pytest.raises(rc.RealDataError, match="test: missing AV2 split directory"):
         reader.frames("test")
+
+
+def test_argoverse_camera_sync_follows_av2s_25_ms(tmp_path):
+    root = str(tmp_path)
+    fc.write_av2_log(root, "train", "log-20ms", cam_dt_ns=20_000_000, sweeps=2)
+    fc.write_av2_log(root, "train", "log-30ms", cam_dt_ns=30_000_000, sweeps=2, x=60.0)
+    cams = ("ring_front_center",)
+    reader = av.ArgoverseReader(av.ArgoverseConfig(dataroot=root, cameras=cams, frame_stride=1))
+    assert reader.identity()["max_sync_ms"] == 25.0
+    with pytest.warns(UserWarning, match=r"skipped 2 sweeps .* within 25 ms"):
+        frames = reader.frames("train")
+    assert [f.group for f in frames] == ["log-20ms"] * 2
+    loose = av.ArgoverseConfig(dataroot=root, cameras=cams, frame_stride=1, max_sync_ms=50.0)
+    assert {f.group for f in av.ArgoverseReader(loose).frames("train")} == {"log-20ms", "log-30ms"}
+
+
+def test_argoverse_log_in_two_splits_is_named(tmp_path):
+    root = str(tmp_path)
+    fc.write_av2_log(root, "train", "log-dup")
+    fc.write_av2_log(root, "train", "log-ok", x=60.0)
+    fc.write_av2_log(root, "val", "log-dup")
+    fc.write_av2_log(root, "test", "log-pit", city="PIT")
+    cfg = av.ArgoverseConfig(dataroot=root, cameras=fc.DOT_CAMERAS, frame_stride=1)
+    for split, other in (("train", "val"), ("val", "train")):  # whichever is listed
+        with pytest.raises(
+            rc.RealDataError,
+            match=rf"AV2 log 'log-dup' is in two splits, '{split}' and '{other}'.*"
+            rf"remove it from one of the split directories under {root}",
+        ):
+            av.ArgoverseReader(cfg).frames(split)
+    assert {f.group for f in av.ArgoverseReader(cfg).frames("test")} == {"log-pit"}
+    # Only logs kept by the city filter count.
+    mia = av.ArgoverseConfig(dataroot=root, cameras=fc.DOT_CAMERAS, cities=("PIT",))
+    assert {f.group for f in av.ArgoverseReader(mia).frames("test")} == {"log-pit"}
+
+
+def test_nuscenes_scene_in_two_splits_is_named(nus, tmp_path):
+    _, _, root = nus
+    split_file = tmp_path / "splits.json"
+    split_file.write_text(
+        json.dumps({"a": ["scene-0061"], "b": ["scene-0103", "scene-0061"], "c": ["scene-0103"]})
+    )
+    base = {"dataroot": root, "version": "v1.0-mini", "image_size": OUT_HW}
+    user = nu.NuScenesReader(nu.NuScenesConfig(**base, split_file=str(split_file)))
+    with pytest.raises(
+        rc.RealDataError,
+        match=r"nuScenes scene 'scene-0061' is in two splits, 'a' and 'b'.*split_file",
+    ):
+        user.frames("a")
+    with pytest.raises(rc.RealDataError, match=r"'scene-0103' is in two splits, 'c' and 'b'"):
+        user.frames("c")
+    split_file.write_text(json.dumps({"twice": ["scene-0103", "scene-0103"]}))
+    with pytest.raises(rc.RealDataError, match=r"'scene-0103' is listed twice in split 'twice'"):
+        user.frames("twice")
+    # Official lists: mini_train lies inside train; the frames of both name the scene.
+    official = nu.NuScenesReader(nu.NuScenesConfig(**base))
+    frames = {s: [f.group for f in official.frames(s)] for s in ("mini_train", "train")}
+    with pytest.raises(
+        rc.RealDataError, match=r"nuScenes scene 'scene-0061' is in two splits, 'mini_train' and"
+    ):
+        rc.check_disjoint_groups(frames, "nuScenes scene")
+    rc.check_disjoint_groups({s: frames[s] for s in ("mini_train",)}, "nuScenes scene")

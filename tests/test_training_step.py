@@ -157,3 +157,98 @@ def test_sweep_directory_names_drop_brackets():
 
     name = "eval.splits=[test],map.channels=[road,building],map.road_width=5"
     assert safe_dirname(name) == "eval.splits=test,map.channels=road+building,map.road_width=5"
+
+
+def test_batch_shard_of_one_process_is_everything():
+    for n in (1, 8):
+        assert stp.batch_shard(stp.make_mesh(n)) == (0, 1)
+
+
+def test_process_local_placement_equals_global_placement_in_one_process():
+    mesh = stp.make_mesh(8)
+    batch = _batch(0)
+    local = stp.device_batch(batch, mesh)  # process_local=True: this process holds all rows
+    whole = stp.device_batch(batch, mesh, process_local=False)
+    for key in batch:
+        assert local[key].sharding == whole[key].sharding
+        np.testing.assert_array_equal(np.asarray(local[key]), batch[key])
+        np.testing.assert_array_equal(np.asarray(whole[key]), batch[key])
+
+
+_TWO_PROCESS_WORKER = """
+import json, os, sys
+pid, port, tests = int(sys.argv[1]), sys.argv[2], sys.argv[3]
+import jax
+jax.config.update("jax_num_cpu_devices", 4)
+jax.config.update("jax_cpu_collectives_implementation", "gloo")
+jax.distributed.initialize(f"localhost:{port}", num_processes=2, process_id=pid)
+import numpy as np
+from jax.experimental import multihost_utils
+sys.path.insert(0, tests)
+import test_training_step as t
+from seglocnet_jax.training import state as st
+from seglocnet_jax.training import step as stp
+
+mesh = stp.make_mesh(8)
+index, count = stp.batch_shard(mesh)
+opt = st.make_optimizer(t.CFG)
+state = stp.replicate(st.TrainState.create(t._init(), opt, jax.random.key(1)), mesh)
+step_fn = stp.make_train_step(t._loss_fn, opt, mesh)
+losses, same = [], True
+for i in range(3):
+    full = t._batch(i)
+    b = len(full["x"]) // count
+    local = {k: v[index * b : (index + 1) * b] for k, v in full.items()}  # this process's rows
+    placed = stp.device_batch(local, mesh)
+    for k, v in placed.items():  # the global array is the whole batch
+        same &= bool(np.array_equal(multihost_utils.process_allgather(v, tiled=True), full[k]))
+    state, m = step_fn(state, placed)
+    losses.append(float(m["loss"]))
+print("RESULT " + json.dumps({"shard": [index, count], "losses": losses, "same": same}))
+"""
+
+
+@pytest.mark.slow
+def test_two_processes_read_their_halves_and_train_like_one(tmp_path):
+    """Two jax.distributed CPU processes (4 devices each): each places only its half of every
+    batch (``device_batch`` of process-local rows, shard ``batch_shard``); the global arrays are
+    the whole batches and the losses those of one process with 8 devices."""
+    import json
+    import socket
+    import subprocess
+    import sys
+
+    script = tmp_path / "worker.py"
+    script.write_text(_TWO_PROCESS_WORKER)
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        port = s.getsockname()[1]
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    tests = os.path.dirname(os.path.abspath(__file__))
+    procs = [
+        subprocess.Popen(
+            [sys.executable, str(script), str(i), str(port), tests],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=env,
+        )
+        for i in range(2)
+    ]
+    outs = []
+    try:
+        for p in procs:
+            outs.append(p.communicate(timeout=240)[0])
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    results = []
+    for p, out in zip(procs, outs, strict=True):
+        assert p.returncode == 0, out[-3000:]
+        results.append(json.loads(out.split("RESULT ", 1)[1].splitlines()[0]))
+    assert [r["shard"] for r in results] == [[0, 2], [1, 2]]
+    assert all(r["same"] for r in results)
+    assert results[0]["losses"] == results[1]["losses"]
+    _, l8, _ = _run(8, 3)
+    np.testing.assert_allclose(results[0]["losses"], l8, rtol=1e-5, atol=1e-6)

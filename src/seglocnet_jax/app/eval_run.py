@@ -39,7 +39,7 @@ def _evaluate(cfg: ExperimentConfig, checkpoint: str | None, workdir: str) -> di
     evaluate = Evaluator(cfg, dataset_dir, mesh, workdir)
     params, step = None, None
     if cfg.eval.bev_source == "model":
-        example = step_lib.device_batch(next(iter(evaluate.loader(cfg.eval.splits[0]))), mesh)
+        example = evaluate.place(next(iter(evaluate.loader(cfg.eval.splits[0]))))
         target, _ = init_state(cfg, example)
         state, step = ckpt_lib.restore_params(checkpoint, jax.device_get(target))
         params = step_lib.replicate(state.params, mesh)

@@ -58,7 +58,9 @@ class Evaluator:
         return self._loaders[split]
 
     def place(self, batch: dict) -> dict:
-        return step_lib.device_batch(batch, self.mesh)
+        # Evaluation loaders are not sharded: every process reads the whole batch (the metrics
+        # compare device outputs with the host rows of the whole batch).
+        return step_lib.device_batch(batch, self.mesh, process_local=False)
 
     def __call__(self, params, splits, *, max_batches=None, num_figures=0, tag="") -> dict:
         t0 = time.time()
@@ -99,6 +101,7 @@ def _train(cfg: ExperimentConfig, run: runs.RunDir) -> dict:
     dataset_dir = prepare_dataset(cfg)
     t_data = time.time() - t_start
     mesh = step_lib.make_mesh(cfg.train.num_devices)
+    # Each process reads and decodes only its rows of every global batch (all in one process).
     train_loader = loader_lib.make_loader(
         dataset_dir,
         "train",
@@ -107,6 +110,7 @@ def _train(cfg: ExperimentConfig, run: runs.RunDir) -> dict:
         cfg.train.seed,
         train=True,
         config=cfg.loader,
+        shard_options=loader_lib.ShardOptions(*step_lib.batch_shard(mesh)),
     )
     example = next(iter(train_loader))
     state, optimizer = init_state(cfg, step_lib.device_batch(example, mesh))

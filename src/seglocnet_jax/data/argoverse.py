@@ -4,22 +4,38 @@ frames.
 Reads the documented on-disk format directly (see ``real_common`` for why not the av2 API)::
 
     {dataroot}/{split}/{log_id}/city_SE3_egovehicle.feather      # timestamp_ns, qw..qz, tx_m..tz_m
-    {dataroot}/{split}/{log_id}/calibration/intrinsics.feather   # sensor_name, fx_px, fy_px, ...
+    {dataroot}/{split}/{log_id}/calibration/intrinsics.feather   # sensor_name, fx_px, ..., k1..k3
     {dataroot}/{split}/{log_id}/calibration/egovehicle_SE3_sensor.feather
     {dataroot}/{split}/{log_id}/sensors/lidar/{timestamp_ns}.feather   # x, y, z, intensity (ego)
     {dataroot}/{split}/{log_id}/sensors/cameras/{camera}/{timestamp_ns}.jpg
     {dataroot}/{split}/{log_id}/map/log_map_archive_{log_id}____{CITY}_city_{n}.json
 
 A frame is every ``frame_stride``-th LiDAR sweep (10 Hz; stride 5 gives nuScenes' 2 Hz); each
-camera contributes its image nearest in time (within ``max_sync_ms``) and, like nuScenes,
-``cam_to_ego`` maps it into the ego frame at the LiDAR time. Poses are in the city frame (UTM of
-the city's zone minus the city origin: grid north, see datasets.md).
+camera contributes its image nearest in time within ``max_sync_ms`` (default 25 ms: the av2
+``SensorDataloader`` matches a sweep to the nearest image within half the 20 Hz camera period)
+and, like nuScenes, ``cam_to_ego`` maps it into the ego frame at the LiDAR time. Poses are in the
+city frame (UTM of the city's zone minus the city origin: grid north, see datasets.md). A log id
+found in two split directories is an error naming it and both splits.
+
+Ego frame: AV2's egovehicle origin is the centre of the rear axle, ~0.33 m above the ground
+(Argoverse maintainers; ground points sit at z ~ -0.34 m in real sweeps). The reader lifts the
+frame it emits by ``ego_height_m`` (LiDAR z and camera mounts alike) so that its origin is on
+the ground as ``schema`` says and as nuScenes' is (``real_common.frame_sample``).
 
 Cameras: AV2 has 7 ring cameras; ``cameras`` chooses which and in what order. The default keeps
 all 7 (full 360 degree coverage); for a model that expects nuScenes' 6 cameras, drop
 ``ring_front_center`` (the portrait one; its neighbours still cover the front). Images of every
 camera are resized to ``image_size`` with intrinsics scaled per axis, so the portrait front
 camera is stretched but geometrically exact.
+
+Distortion: ``intrinsics.feather`` also lists radial coefficients ``k1, k2, k3`` (OpenCV's
+radial model with p1 = p2 = 0, ``real_common.radial_distort``; k1 ~ -0.25). The published images
+are already undistorted ("All camera imagery is provided in an undistorted format", AV2 user
+guide, sensor suite; the av2 API projects with ``K`` alone) and the coefficients describe the
+original lens, so by default they are not applied: undistorting such an image again would move
+its edges by 15-48 px in a 320x800 image. ``undistort=true`` is for imagery that still
+has the lens distortion (e.g. raw frames re-exported in this layout): each image is remapped to
+the pinhole model of its stored (resized) intrinsics.
 
 Argoverse 1.1 (the paper's data: 113 logs in MIA and PIT) has no API installable beside jax; AV2
 stands in with the same cities and origins. A 1.1 reader only needs to implement
@@ -39,6 +55,7 @@ import shapely
 from shapely.geometry import Polygon
 
 from seglocnet_jax.data import real_common as rc
+from seglocnet_jax.data.schema import EGO_HEIGHT_M
 from seglocnet_jax.maps.projection import Projection
 
 RING_CAMERAS = (
@@ -60,6 +77,7 @@ CITY_FRAMES = {
     "WDC": (18, (38.889377, -77.0355047439081)),
 }
 POSE_COLUMNS = ("timestamp_ns", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")
+DISTORTION_COLUMNS = ("k1", "k2", "k3")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,7 +90,12 @@ class ArgoverseConfig:
       image_size: ``(H, W)`` stored image size; intrinsics are scaled to it.
       cameras: ring cameras in output order (see the module docstring for 6 vs 7).
       frame_stride: keep every n-th LiDAR sweep of a log.
-      max_sync_ms: largest camera / pose time offset from the sweep accepted, milliseconds.
+      max_sync_ms: largest camera / pose time offset from the sweep accepted, milliseconds
+        (AV2's own: half the 20 Hz camera period, 25 ms).
+      ego_height_m: height of AV2's ego origin (rear-axle centre) above the ground, metres;
+        the emitted ego frame is lifted by it so that its origin is on the ground.
+      undistort: remap images through the ``k1, k2, k3`` radial model to a pinhole image. Off:
+        the published AV2 images are already undistorted (module docstring).
     """
 
     dataroot: str = "data/av2/sensor"
@@ -80,10 +103,13 @@ class ArgoverseConfig:
     image_size: tuple[int, int] = (320, 800)
     cameras: tuple[str, ...] = RING_CAMERAS
     frame_stride: int = 5
-    max_sync_ms: float = 50.0
+    max_sync_ms: float = 25.0
+    ego_height_m: float = EGO_HEIGHT_M["av2"]
+    undistort: bool = False
 
     def __post_init__(self):
         rc.check_image_size(self.image_size, "dataset.reader.image_size")
+        rc.check_ego_height(self.ego_height_m, "dataset.reader.ego_height_m")
         if not self.cameras:
             raise ValueError("dataset.reader.cameras must name at least one ring camera")
         if self.frame_stride < 1 or self.max_sync_ms <= 0:
@@ -136,7 +162,7 @@ def log_city(log_dir: str) -> tuple[str, str]:
 class _Log:
     """Calibration, poses and file timestamps of one log (loaded once, on demand)."""
 
-    def __init__(self, log_dir: str, cameras):
+    def __init__(self, log_dir: str, cameras, undistort: bool = False):
         self.dir = log_dir
         self.id = os.path.basename(log_dir)
         self.map_path, self.city = log_city(log_dir)
@@ -157,10 +183,11 @@ class _Log:
         )
         intr = _read_feather(
             os.path.join(calib_dir, "intrinsics.feather"),
-            ("sensor_name", "fx_px", "fy_px", "cx_px", "cy_px"),
+            ("sensor_name", "fx_px", "fy_px", "cx_px", "cy_px")
+            + (DISTORTION_COLUMNS if undistort else ()),
             "AV2 camera intrinsics",
         )
-        self.ego_from_cam, self.intrinsics, self.cam_t = {}, {}, {}
+        self.ego_from_cam, self.intrinsics, self.distortion, self.cam_t = {}, {}, {}, {}
         for cam in cameras:
             i = np.flatnonzero(ext["sensor_name"] == cam)
             j = np.flatnonzero(intr["sensor_name"] == cam)
@@ -173,6 +200,15 @@ class _Log:
             )
             fx, fy, cx, cy = (float(intr[c][j]) for c in ("fx_px", "fy_px", "cx_px", "cy_px"))
             self.intrinsics[cam] = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+            if undistort:
+                dist = tuple(float(intr[c][j]) for c in DISTORTION_COLUMNS)
+                if not np.all(np.isfinite(dist)):
+                    raise rc.RealDataError(
+                        f"{calib_dir}/intrinsics.feather: {cam} has non-finite k1..k3 {dist}"
+                    )
+                self.distortion[cam] = dist
+            else:
+                self.distortion[cam] = None  # published images are undistorted
             self.cam_t[cam] = _timestamps(os.path.join(log_dir, "sensors", "cameras", cam), ".jpg")
         self.lidar_t = _timestamps(os.path.join(log_dir, "sensors", "lidar"), ".feather")
 
@@ -214,11 +250,14 @@ class ArgoverseReader:
 
     def _log(self, log_dir: str) -> _Log:
         if log_dir not in self._logs:
-            self._logs[log_dir] = _Log(log_dir, self.cfg.cameras)
+            self._logs[log_dir] = _Log(log_dir, self.cfg.cameras, self.cfg.undistort)
         return self._logs[log_dir]
 
     def logs(self, split: str) -> list[_Log]:
-        """Logs of an AV2 split directory, filtered by ``cities``, sorted by log id."""
+        """Logs of an AV2 split directory, filtered by ``cities``, sorted by log id.
+
+        A kept log whose id is also a log directory of another split directory under
+        ``dataroot`` is an error naming it and both splits."""
         split_dir = os.path.join(self.cfg.dataroot, split)
         if not os.path.isdir(split_dir):
             raise rc.RealDataError(
@@ -231,7 +270,21 @@ class ArgoverseReader:
             raise rc.RealDataError(
                 f"{split_dir}: no logs of cities {self.cfg.cities} among {len(dirs)} logs"
             )
+        self._check_other_splits(split, [os.path.basename(d) for d in keep])
         return [self._log(d) for d in keep]
+
+    def _check_other_splits(self, split: str, log_ids: list[str]) -> None:
+        ids, others = set(log_ids), {}
+        for entry in sorted(os.scandir(self.cfg.dataroot), key=lambda e: e.name):
+            if entry.is_dir() and entry.name != split:
+                others[entry.name] = [
+                    e.name for e in os.scandir(entry.path) if e.is_dir() and e.name in ids
+                ]
+        rc.check_disjoint_groups(
+            {split: log_ids, **others},
+            "AV2 log",
+            hint=f"remove it from one of the split directories under {self.cfg.dataroot}",
+        )
 
     def frames(self, split: str) -> list[rc.Frame]:
         """Every ``frame_stride``-th sweep of the split's logs that has every camera and a pose
@@ -281,9 +334,11 @@ class ArgoverseReader:
                 path = os.path.join(log_dir, "sensors", "cameras", cam, f"{tc}.jpg")
                 # The ego frame at the LiDAR time, through the world, from the camera's time.
                 t_cam = ego_from_world @ log.world_from_ego(tc, self._max_ns)
-                yield path, log.intrinsics[cam], t_cam @ log.ego_from_cam[cam]
+                yield path, log.intrinsics[cam], t_cam @ log.ego_from_cam[cam], log.distortion[cam]
 
-        return rc.frame_sample(frame, views(), self.cfg.image_size, lidar)
+        return rc.frame_sample(
+            frame, views(), self.cfg.image_size, lidar, ego_height=self.cfg.ego_height_m
+        )
 
     def drivable(self, city: str):
         """Union of the drivable areas of every loaded log in ``city`` (city-frame metres).

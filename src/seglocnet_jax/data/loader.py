@@ -12,6 +12,15 @@ process and file version), so a shard that changed after it was written fails he
 Everything is NumPy and deterministic for a seed; ``iter(loader)`` returns grain's iterator whose
 ``get_state()`` (a small JSON-able dict) / ``set_state()`` resume bit-identically.
 
+Many processes (``jax.distributed``): with ``shard_options = grain.sharding.ShardOptions(i, n)``
+(``ShardOptions`` here) the loader of shard ``i`` reads and decodes only its ``batch_size / n``
+rows of every global batch: rows ``[i * b, (i + 1) * b)`` with ``b = batch_size / n``, so the
+``n`` shards' batches, concatenated in shard order, are the unsharded loader's batch bit for bit
+(same shuffle, same per-record priors, same padding). Every shard yields the same number of
+batches, and its iterator state counts global batches, so any shard's state resumes any other
+shard (or the unsharded loader) at the same global batch. ``training.step.batch_shard(mesh)``
+gives ``(i, n)`` of this process for a mesh.
+
 No worker processes by default: on 2 cores grain workers were slower than decoding in threads
 (DESIGN). If ``worker_count > 0`` under Hydra or pytest, call ``absl.flags.FLAGS.mark_as_parsed()``
 first or the workers crash (grain 0.2.18).
@@ -24,6 +33,7 @@ import os
 
 import grain
 import numpy as np
+from grain.sharding import ShardOptions
 
 from seglocnet_jax import geometry
 from seglocnet_jax.data.manifest import read_manifest, split_files, verify_split
@@ -175,13 +185,25 @@ class Loader:
     Attributes:
       dataset: the grain ``IterDataset``.
       num_records: records in the split (without eval padding).
-      batches_per_epoch: full batches per pass over the split (eval: including the padded one).
+      batches_per_epoch: full (global) batches per pass over the split (eval: including the
+        padded one); the same for every shard.
+      batch_size: rows of the batches this loader yields (the global batch size / shard count).
+      shard_options: the ``ShardOptions`` it reads (``ShardOptions(0, 1)``: everything).
     """
 
-    def __init__(self, dataset, num_records: int, batches_per_epoch: int):
+    def __init__(
+        self,
+        dataset,
+        num_records: int,
+        batches_per_epoch: int,
+        batch_size: int | None = None,
+        shard_options: ShardOptions | None = None,
+    ):
         self.dataset = dataset
         self.num_records = num_records
         self.batches_per_epoch = batches_per_epoch
+        self.batch_size = batch_size
+        self.shard_options = shard_options or ShardOptions(0, 1)
 
     def __iter__(self):
         return iter(self.dataset)
@@ -204,6 +226,7 @@ def make_loader(
     *,
     config: LoaderConfig | None = None,
     rasters: dict | None = None,
+    shard_options: ShardOptions | None = None,
 ) -> Loader:
     """The loader of one split of a prepared dataset.
 
@@ -212,15 +235,27 @@ def make_loader(
       split: ``train``, ``val``, ``test``, ``kouvola``, ... (manifest ``splits``).
       map_variant: prepared variant name (``data.variants.variant_name``); ignored if
         ``rasters`` is given.
-      batch_size: samples per batch (B).
+      batch_size: samples per global batch (B); a shard's batches have ``B / shard_count``.
       seed: shuffling and training-prior seed (0 <= seed < 2**32).
       train: shuffle, repeat ``config.num_epochs`` times, random priors, drop the remainder;
         else file order, stored priors, one pass, last batch padded (``valid`` False).
       rasters: city -> raster, to bypass the stored map variants.
+      shard_options: read only shard ``shard_index`` of ``shard_count`` of every global batch
+        (one process of a multi-host run; ``grain.sharding.ShardByJaxProcess()`` or
+        ``training.step.batch_shard``); None reads everything. ``drop_remainder`` is ignored:
+        every shard gets the same number of rows.
     """
     cfg = config or LoaderConfig()
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    shard = shard_options or ShardOptions(0, 1)  # validates 0 <= index < count itself
+    index, count = int(shard.shard_index), int(shard.shard_count)
+    if batch_size % count:
+        raise ValueError(
+            f"batch_size {batch_size} is not divisible by the {count} loader shards (processes); "
+            f"set the batch size to a multiple of {count}"
+        )
+    local = batch_size // count
     man = read_manifest(dataset_dir)
     files = split_files(man, dataset_dir, split)
     verify_split(man, dataset_dir, split)  # size + SHA-256 per shard, once per process
@@ -235,15 +270,28 @@ def make_loader(
             raise RecordError(f"split {split!r} has {n} records < batch_size {batch_size}")
         ds = grain.MapDataset.source(ShardSource(files)).seed(seed).shuffle()
         ds = ds.repeat(cfg.num_epochs).random_map(transform)
-        ds = ds.batch(batch_size, drop_remainder=True)
+        if cfg.num_epochs is not None and count > 1:  # whole global batches: the same for all
+            ds = ds[: len(ds) // batch_size * batch_size]
         batches = n // batch_size
     else:
         batches = -(-n // batch_size)
         ds = grain.MapDataset.source(ShardSource(files, pad_to=batches * batch_size))
-        ds = ds.map(transform).batch(batch_size, drop_remainder=True)
+        ds = ds.map(transform)
+    # Rows [index * local, (index + 1) * local) of every global batch: local batches of
+    # consecutive records, every count-th one. Records are mapped (priors drawn) before the
+    # slicing, by their global index, so a shard's rows equal the unsharded loader's.
+    ds = ds.batch(local, drop_remainder=True)
+    if count > 1:
+        ds = ds[index::count]
     it_ds = ds.to_iter_dataset(
         grain.ReadOptions(num_threads=cfg.num_threads, prefetch_buffer_size=cfg.prefetch)
     )
     if cfg.worker_count > 0:
         it_ds = it_ds.mp_prefetch(grain.MultiprocessingOptions(num_workers=cfg.worker_count))
-    return Loader(it_ds, num_records=n, batches_per_epoch=batches)
+    return Loader(
+        it_ds,
+        num_records=n,
+        batches_per_epoch=batches,
+        batch_size=local,
+        shard_options=ShardOptions(index, count),
+    )

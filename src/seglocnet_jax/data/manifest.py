@@ -16,7 +16,9 @@ Integrity: a shard's SHA-256 and size are recorded when it is written; the loade
 before it reads a split (:func:`verify_split`). Shard ``i`` of ``n`` of split ``s`` is
 ``sensors/<s>/<s>-<i>-of-<n>.array_record`` (:func:`records.shard_name`): a manifest whose split
 lists another file (another split's shard, or a file listed twice) is refused. Manifests of
-version 1 (before shard checksums) are refused with the remedy: prepare again.
+version 1 (before shard checksums) are refused with the remedy: prepare again; so are datasets
+whose ``record_version`` is not :data:`records.RECORD_VERSION` (version 1: float32 LiDAR, PNG
+images only; version 2: compact LiDAR, JPEG images for real data).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import os
 from importlib import metadata
 
 from seglocnet_jax import fileio
-from seglocnet_jax.data.records import RECORD_VERSION, shard_name, verify_shard
+from seglocnet_jax.data.records import RECORD_CHANGES, RECORD_VERSION, shard_name, verify_shard
 from seglocnet_jax.fileio import write_json_atomic  # noqa: F401 - the map writers import it here
 
 FORMAT = "seglocnet_jax.dataset"
@@ -150,7 +152,10 @@ def read_manifest(dataset_dir: str | os.PathLike) -> dict:
     if man.get("record_version") != RECORD_VERSION:
         raise ManifestError(
             f"{path}: record_version {man.get('record_version')}, this code reads "
-            f"{RECORD_VERSION}; prepare the dataset again in a new directory"
+            f"{RECORD_VERSION} ({RECORD_CHANGES}). Re-run the data preparation (simulator) or "
+            f"the conversion (real data) into a new directory (another data.name / "
+            f"dataset.convert.name or root), or delete {os.path.dirname(path)} to have it "
+            "prepared again"
         )
     for key in ("config", "splits", "map_variants", "complete"):
         if key not in man:

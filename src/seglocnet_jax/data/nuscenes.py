@@ -12,7 +12,18 @@ the map frame of the log's location (x east, y north, metres from the map's sout
 LiDAR points go to that ego frame through LIDAR_TOP's ``calibrated_sensor``. Cameras fire up to
 ~40 ms apart from the LiDAR; ``cam_to_ego`` therefore maps each camera into the ego frame *at
 the LiDAR time* (camera -> ego at camera time -> map -> ego at LiDAR time), so the 6 cameras and
-the point cloud share one frame while the vehicle moves.
+the point cloud share one frame while the vehicle moves. The camera / LiDAR association is the
+dataset's own (the keyframe ``sample_data`` of each channel), so no sync tolerance applies.
+
+Cameras: the published images are already undistorted and rectified (nuscenes-devkit; the
+tables carry no distortion coefficients), so ``camera_intrinsic`` is an exact pinhole model and
+images are only resized. Ego frame: nuScenes' ego origin is the rear-axle centre projected onto
+the ground, already the schema's; ``ego_height_m`` (default 0) exists so that both readers
+record and apply their ego-to-ground height the same way (``real_common.frame_sample``).
+
+Splits: a scene that a ``split_file`` lists in two splits is an error naming it and both splits.
+The official lists are disjoint except ``mini_*``, which lie inside train / val; a conversion
+that combines overlapping lists must check its splits (``real_common.check_disjoint_groups``).
 """
 
 from __future__ import annotations
@@ -25,6 +36,7 @@ import shapely
 from shapely.geometry import Polygon
 
 from seglocnet_jax.data import real_common as rc
+from seglocnet_jax.data.schema import EGO_HEIGHT_M
 from seglocnet_jax.maps.projection import Projection
 
 CAMERAS = (
@@ -85,6 +97,7 @@ class NuScenesConfig:
       image_size: ``(H, W)`` stored image size (paper 320x800); intrinsics are scaled to it.
       cameras: channels in output order (default: the 6 surround cameras).
       split_file: optional JSON ``{split: [scene names]}`` replacing the official lists.
+      ego_height_m: height (m) of the ego origin above the ground; nuScenes' is on the ground.
     """
 
     dataroot: str = "data/nuscenes"
@@ -92,9 +105,11 @@ class NuScenesConfig:
     image_size: tuple[int, int] = (320, 800)
     cameras: tuple[str, ...] = CAMERAS
     split_file: str | None = None
+    ego_height_m: float = EGO_HEIGHT_M["nuscenes"]
 
     def __post_init__(self):
         rc.check_image_size(self.image_size, "dataset.reader.image_size")
+        rc.check_ego_height(self.ego_height_m, "dataset.reader.ego_height_m")
         if not self.cameras:
             raise ValueError("dataset.reader.cameras must name at least one camera channel")
 
@@ -164,7 +179,10 @@ class NuScenesReader:
     # ----------------------------------------------------------------------- splits and frames
 
     def split_scenes(self, split: str) -> list[str]:
-        """Scene names of ``split`` present in this version (user file or official lists)."""
+        """Scene names of ``split`` present in this version (user file or official lists).
+
+        With ``split_file``, a scene of ``split`` that another split of the file also lists,
+        or that ``split`` lists twice, is an error naming it (and both splits)."""
         if self.cfg.split_file:
             table = rc.read_json(self.cfg.split_file, "nuScenes split file")
             if split not in table:
@@ -172,6 +190,18 @@ class NuScenesReader:
                     f"{self.cfg.split_file}: no split {split!r} (have {sorted(table)})"
                 )
             wanted = list(table[split])
+            twice = sorted({s for s in wanted if wanted.count(s) > 1})
+            if twice:
+                raise rc.RealDataError(
+                    f"{self.cfg.split_file}: nuScenes scene {twice[0]!r} is listed twice in "
+                    f"split {split!r}"
+                )
+            others = {k: [s for s in v if s in wanted] for k, v in table.items() if k != split}
+            rc.check_disjoint_groups(
+                {split: wanted, **others},
+                "nuScenes scene",
+                hint=f"fix dataset.reader.split_file {self.cfg.split_file}",
+            )
         else:
             wanted = official_scenes(split)
         present = [s for s in wanted if s in self._scenes]
@@ -254,9 +284,11 @@ class NuScenesReader:
                     )
                 path = os.path.join(self.cfg.dataroot, sd["filename"])
                 t = ego_from_world @ self._world_from_ego(sd) @ calib["ego_from_sensor"]
-                yield path, calib["intrinsic"], t
+                yield path, calib["intrinsic"], t, None  # published images are rectified
 
-        return rc.frame_sample(frame, views(), self.cfg.image_size, lidar)
+        return rc.frame_sample(
+            frame, views(), self.cfg.image_size, lidar, ego_height=self.cfg.ego_height_m
+        )
 
     # ----------------------------------------------------------------------- maps
 

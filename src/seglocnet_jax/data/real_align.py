@@ -6,25 +6,121 @@ differences). The published corrections (BLOS-BEV) are not public, so we fit one
 
     p_dataset = centre + scale * R(rotation) @ (p_osm - centre) + shift
 
-by correlating the dataset's drivable-area raster (the template) with the OSM road raster (the
-tile), warped by each candidate rotation and scale, with the project's solver
-(:func:`solver.score_volume`: one exhaustive shift search per candidate). The best candidate's
-peak is refined to sub-pixel (and sub-step for rotation) by parabola fits.
-
+**Windows on the data.** A city's frames lie in clusters kilometres apart (AV2 logs, nuScenes
+scenes); the bounding box of all of them is mostly empty space. So the fit places square
+windows (``window`` metres) on the clusters of frames (:func:`place_windows`; without frames, on
+the drivable area), and in each window correlates the drivable-area raster (the template) with
+the OSM road raster, warped by each candidate rotation and scale about the window's centre, with
+the project's solver (:func:`solver.score_volume`: one exhaustive shift search per candidate).
 The template is ``2 * drivable - 1`` (like the solver's GT logits) restricted to a band around
 the drivable area, so OSM roads outside the dataset's mapped region cost nothing.
+
+**One correction per city from all windows together.** A city similarity about the windows'
+weighted centre moves window ``w`` (centre ``c_w``) by the local shift
+``shift + (scale R - I)(c_w - centre)``; the city fit maximizes the sum over windows of their
+score volumes at those local shifts, over a rotation grid fine enough that the farthest window
+moves by at most half a pixel per step (window volumes are interpolated between the searched
+rotations) to pick scale and rotation; the rotation is then refined on exact volumes (hill climb
+and a parabola fit), the shift to sub-pixel by a parabola fit. A window whose own peak is
+ambiguous (a straight road) still constrains the city fit across its road.
+
+**Quality, and refusal.** Per window: its own peak score (fraction of its template's positive
+weight), peak sharpness (``1 - best score farther than max(road_width / 2, 2 px) from the peak /
+peak``: 0 for a flat or ridge-shaped volume), its own local shift and its distance to the city
+fit there (``residual_m``). Per city: the summed peak score and sharpness, and the share of sharp
+windows that agree with the fit. A degenerate fit is refused (:class:`AlignmentError`, naming the
+city and the remedies) rather than applied: a window with no OSM match (score < ``min_score``),
+a peak on the search bound (shift, rotation or scale), a near-zero or flat city score, a fit
+that needs a local shift beyond ``max_shift`` at a matching window, or sharp windows that
+disagree (fewer than ``min_agreement`` within ``max_disagreement`` metres). ``manual`` gives a
+city a correction by hand instead; ``enabled: false`` uses the identity everywhere.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 
 import numpy as np
 from scipy import ndimage
 from tqdm.auto import tqdm
 
 from seglocnet_jax import geometry
+from seglocnet_jax.data.real_common import RealDataError
+
+# Keys of AlignConfig that define the fitted values (stored in the manifest and compared on
+# resume); the acceptance thresholds and the manual corrections are not among them.
+FIT_KEYS = (
+    "enabled",
+    "resolution",
+    "max_shift",
+    "max_rotation_deg",
+    "rotation_step_deg",
+    "scales",
+    "band",
+    "road_width",
+    "window",
+    "max_windows",
+)
+CHECK_KEYS = ("min_score", "min_sharpness", "max_disagreement", "min_agreement")
+MANUAL_KEYS = ("shift", "rotation_deg", "scale", "centre")
+_PREFIX = "dataset.convert.align"
+
+
+class AlignmentError(RealDataError):
+    """An OSM alignment that is refused (degenerate fit) or impossible; names city and remedy."""
+
+
+def _number(value, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ValueError(f"{key} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _pair(value, key: str) -> list[float]:
+    if not isinstance(value, list | tuple) or len(value) != 2:
+        raise ValueError(f"{key} must be [x, y] metres, got {value!r}")
+    return [_number(v, f"{key}[{i}]") for i, v in enumerate(value)]
+
+
+def _check_manual(manual) -> dict:
+    """Validated ``{city: {shift, rotation_deg, scale, centre}}`` with every key filled in."""
+    if manual is None:
+        return {}
+    if not isinstance(manual, Mapping):
+        raise ValueError(
+            f"{_PREFIX}.manual must map city -> {{shift: [dx, dy], rotation_deg: r, scale: s, "
+            f"centre: [x, y]}}, got {manual!r}"
+        )
+    out = {}
+    for city, entry in manual.items():
+        key = f"{_PREFIX}.manual.{city}"
+        entry = {} if entry is None else entry
+        if not isinstance(entry, Mapping):
+            raise ValueError(
+                f"{key} must be a mapping {{shift: [dx, dy], rotation_deg: r, scale: s, "
+                f"centre: [x, y]}} (all optional), got {entry!r}"
+            )
+        unknown = sorted(set(entry) - set(MANUAL_KEYS))
+        if unknown:
+            raise ValueError(
+                f"unknown key(s) {[f'{key}.{k}' for k in unknown]}; {key} accepts "
+                f"{', '.join(MANUAL_KEYS)}"
+            )
+        rotation = _number(entry.get("rotation_deg", 0.0), f"{key}.rotation_deg")
+        scale = _number(entry.get("scale", 1.0), f"{key}.scale")
+        if abs(rotation) > 45.0:
+            raise ValueError(f"{key}.rotation_deg must be within [-45, 45], got {rotation}")
+        if not 0.5 <= scale <= 2.0:
+            raise ValueError(f"{key}.scale must be within [0.5, 2], got {scale}")
+        out[str(city)] = {
+            "shift": _pair(entry.get("shift", (0.0, 0.0)), f"{key}.shift"),
+            "rotation_deg": rotation,
+            "scale": scale,
+            "centre": _pair(entry.get("centre", (0.0, 0.0)), f"{key}.centre"),
+        }
+    return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,14 +128,25 @@ class AlignConfig:
     """The ``dataset.convert.align`` config.
 
     Attributes:
-      enabled: fit a correction (else the identity is used and reported).
+      enabled: fit a correction (else the identity is used and reported, for every city).
       resolution: working resolution, metres per pixel (rasters are block-averaged to it).
-      max_shift: search radius per axis, metres.
+      max_shift: search radius per axis, metres (per window: the local shift).
       max_rotation_deg, rotation_step_deg: rotations searched, degrees (symmetric about 0).
       scales: scales searched (1.0 must be among them to allow "no scale error").
       band: template band around the drivable area, metres.
       road_width: width (m) the OSM centrelines are buffered to for the fit.
-      max_template: largest template side in working pixels (centre crop beyond it).
+      window: side (m) of the square fit windows placed on the clusters of frames.
+      max_windows: most windows per city (those with the most frames; the rest are reported
+        as unchecked).
+      min_score: refuse a window, or the city, whose peak score (fraction of the template's
+        positive weight) is below this (no OSM road matches the drivable area there).
+      min_sharpness: refuse a city fit whose summed score volume is flatter than this; a
+        window below it is "flat" (e.g. one straight road) and is left out of the agreement.
+      max_disagreement: metres a sharp window's own shift may differ from the city fit there.
+      min_agreement: share of the sharp windows that must agree (else: refused).
+      manual: city -> ``{shift: [dx, dy], rotation_deg: r, scale: s, centre: [x, y]}`` (metres
+        in the dataset frame, degrees; each optional: 0 shift, 0 deg, scale 1, centre = the
+        frame's origin): used instead of a fit for that city (``{}``: the identity there).
     """
 
     enabled: bool = True
@@ -50,19 +157,50 @@ class AlignConfig:
     scales: tuple[float, ...] = (0.99, 0.995, 1.0, 1.005, 1.01)
     band: float = 20.0
     road_width: float = 10.0
-    max_template: int = 1024
+    window: float = 512.0
+    max_windows: int = 128
+    min_score: float = 0.1
+    min_sharpness: float = 0.05
+    max_disagreement: float = 10.0
+    min_agreement: float = 0.8
+    manual: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         if min(self.resolution, self.max_shift, self.road_width) <= 0 or self.band < 0:
             raise ValueError(
-                "dataset.convert.align.resolution, max_shift and road_width must be > 0, band >= 0"
+                f"{_PREFIX}.resolution, max_shift and road_width must be > 0, band >= 0"
             )
         if self.rotation_step_deg <= 0 or self.max_rotation_deg < 0:
-            raise ValueError(
-                "dataset.convert.align.rotation_step_deg must be > 0, max_rotation_deg >= 0"
-            )
+            raise ValueError(f"{_PREFIX}.rotation_step_deg must be > 0, max_rotation_deg >= 0")
         if not self.scales or min(self.scales) <= 0:
-            raise ValueError(f"dataset.convert.align.scales must be positive, got {self.scales}")
+            raise ValueError(f"{_PREFIX}.scales must be positive, got {self.scales}")
+        if self.window < 8 * self.resolution:
+            raise ValueError(
+                f"{_PREFIX}.window must be >= 8 x resolution ({8 * self.resolution} m), "
+                f"got {self.window}"
+            )
+        if isinstance(self.max_windows, bool) or not isinstance(self.max_windows, int):
+            raise ValueError(f"{_PREFIX}.max_windows must be an integer, got {self.max_windows!r}")
+        if self.max_windows < 1:
+            raise ValueError(f"{_PREFIX}.max_windows must be >= 1, got {self.max_windows}")
+        if not (0 <= self.min_score < 1 and 0 <= self.min_sharpness < 1):
+            raise ValueError(f"{_PREFIX}.min_score and min_sharpness must be in [0, 1)")
+        if self.max_disagreement <= 0 or not 0 <= self.min_agreement <= 1:
+            raise ValueError(
+                f"{_PREFIX}.max_disagreement must be > 0 and min_agreement in [0, 1], got "
+                f"{self.max_disagreement}, {self.min_agreement}"
+            )
+        object.__setattr__(self, "manual", _check_manual(self.manual))
+
+    def identity(self) -> dict:
+        """The keys that define the fitted values (JSON-able), stored in the manifest."""
+        d = {k: getattr(self, k) for k in FIT_KEYS}
+        d["scales"] = [float(s) for s in self.scales]
+        return d
+
+    def checks(self) -> dict:
+        """The acceptance thresholds (JSON-able)."""
+        return {k: getattr(self, k) for k in CHECK_KEYS}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,8 +254,107 @@ class Similarity:
             score=float(d.get("score", float("nan"))),
         )
 
+    @classmethod
+    def from_manual(cls, entry: dict) -> Similarity:
+        """From a validated ``AlignConfig.manual`` entry."""
+        return cls(
+            shift=tuple(entry["shift"]),
+            rotation=math.radians(entry["rotation_deg"]),
+            scale=float(entry["scale"]),
+            centre=tuple(entry["centre"]),
+        )
 
-def _downsample(mask: np.ndarray, grid: geometry.RasterGrid, factor: int):
+
+@dataclasses.dataclass(frozen=True)
+class Window:
+    """One fit window at the working resolution.
+
+    Attributes:
+      target: ``(S, S)`` drivable-area fraction on ``template_grid`` (S even).
+      template_grid: the window; its centre is the centre of the candidate rotations.
+      source: OSM road fraction on ``source_grid``, which covers the window grown by
+        ``max_shift`` plus the rotation margin (:func:`window_grids`).
+      source_grid: placement of ``source``.
+      frames: frames (points) the window was placed on (report).
+    """
+
+    target: np.ndarray
+    template_grid: geometry.RasterGrid
+    source: np.ndarray
+    source_grid: geometry.RasterGrid
+    frames: int = 0
+
+    @property
+    def centre(self) -> tuple[float, float]:
+        x0, y0, x1, y1 = self.template_grid.bounds
+        return ((x0 + x1) / 2, (y0 + y1) / 2)
+
+
+@dataclasses.dataclass(frozen=True)
+class Alignment:
+    """A city's correction with its quality (:meth:`report` goes into the manifest).
+
+    Attributes:
+      city: the dataset's city / map name.
+      similarity: the correction (OSM -> dataset frame).
+      method: "fit", "manual", "disabled" (``enabled: false``) or "no_osm" (no extract).
+      quality: city figures (score, sharpness, windows, agreement, ...).
+      windows: per-window figures (centre, frames, score, sharpness, shift, residual, status).
+      problems: why the fit is refused (empty: accepted).
+      remedies: what to change, for the error message.
+    """
+
+    city: str
+    similarity: Similarity
+    method: str
+    quality: dict = dataclasses.field(default_factory=dict)
+    windows: tuple = ()
+    problems: tuple = ()
+    remedies: tuple = ()
+
+    @classmethod
+    def identity(cls, city: str, method: str, centre=(0.0, 0.0)) -> Alignment:
+        return cls(city, Similarity(centre=(float(centre[0]), float(centre[1]))), method)
+
+    @classmethod
+    def manual(cls, city: str, entry: dict) -> Alignment:
+        return cls(city, Similarity.from_manual(entry), "manual")
+
+    def report(self) -> dict:
+        """JSON-able manifest entry: :meth:`Similarity.as_dict` plus method, quality, windows."""
+        return dict(
+            self.similarity.as_dict(),
+            method=self.method,
+            quality=dict(self.quality),
+            windows=[dict(w) for w in self.windows],
+        )
+
+    def error(self) -> AlignmentError:
+        q, sim = self.quality, self.similarity
+        fit = (
+            f"shift ({sim.shift[0]:+.2f}, {sim.shift[1]:+.2f}) m, rotation "
+            f"{math.degrees(sim.rotation):+.3f} deg, scale {sim.scale:.4f} about centre "
+            f"({sim.centre[0]:.1f}, {sim.centre[1]:.1f}) m, score "
+            f"{q.get('score', float('nan')):.3f}, sharpness "
+            f"{q.get('sharpness', float('nan')):.3f} over {q.get('windows', 0)} window(s)"
+        )
+        return AlignmentError(
+            f"OSM alignment of {self.city!r} refused: {'; '.join(self.problems)}. The fit (not "
+            f"applied): {fit}. Remedies: {'; '.join(self.remedies)}"
+        )
+
+    def check(self) -> Alignment:
+        """``self``, or raises :meth:`error` when the fit has problems."""
+        if self.problems:
+            raise self.error()
+        return self
+
+
+# --------------------------------------------------------------------------- rasters, windows
+
+
+def downsample(mask: np.ndarray, grid: geometry.RasterGrid, factor: int):
+    """Block mean by ``factor``: ``(small, small_grid)`` (edges that do not fill a block drop)."""
     h, w = (mask.shape[0] // factor) * factor, (mask.shape[1] // factor) * factor
     if h == 0 or w == 0:
         raise ValueError(f"raster {mask.shape} is smaller than the alignment factor {factor}")
@@ -126,6 +363,11 @@ def _downsample(mask: np.ndarray, grid: geometry.RasterGrid, factor: int):
     return small, geometry.RasterGrid(
         grid.x_min, grid.y_max, h // factor, w // factor, grid.resolution * factor
     )
+
+
+def fine_factor(cfg: AlignConfig) -> int:
+    """Rasters are drawn at ``cfg.resolution / fine_factor`` (<= ~0.5 m) and block-averaged."""
+    return max(1, round(cfg.resolution / geometry.RESOLUTION))
 
 
 def _index_from_world(grid: geometry.RasterGrid) -> np.ndarray:
@@ -152,14 +394,506 @@ def _warp(source: np.ndarray, src_grid, out_grid, sim: Similarity) -> np.ndarray
     )
 
 
-def _crop_grid(grid: geometry.RasterGrid, row_c: int, col_c: int, size: int):
-    x, y = grid.pixel_to_world(row_c - size // 2, col_c - size // 2)
-    return geometry.RasterGrid(float(x), float(y), size, size, grid.resolution)
+def _shift_px(cfg: AlignConfig, res: float) -> int:
+    return int(math.ceil(cfg.max_shift / res - 1e-9))
+
+
+def window_grids(centre, cfg: AlignConfig, resolution: float | None = None, origin=(0.0, 0.0)):
+    """``(template_grid, tile_grid, source_grid)`` of a window around ``centre``.
+
+    The template is ``window`` metres square (even pixels) with corners on ``origin + k *
+    resolution``; the tile grows it by ``max_shift``; the source grid grows the tile by what the
+    candidate rotations and scales move its corners (plus 2 pixels).
+    """
+    r = float(resolution or cfg.resolution)
+    n = max(8, int(round(cfg.window / r)))
+    n += n % 2
+    k = _shift_px(cfg, r)
+    x0 = origin[0] + round((centre[0] - n * r / 2 - origin[0]) / r) * r
+    y1 = origin[1] + round((centre[1] + n * r / 2 - origin[1]) / r) * r
+    template = geometry.RasterGrid(float(x0), float(y1), n, n, r)
+    tile = geometry.RasterGrid(float(x0 - k * r), float(y1 + k * r), n + 2 * k, n + 2 * k, r)
+    reach = (n / 2 + k) * r * math.sqrt(2)
+    spread = math.radians(cfg.max_rotation_deg) + max(abs(1 / s - 1) for s in cfg.scales)
+    m = int(math.ceil(reach * spread * 1.05 / r)) + 2
+    source = geometry.RasterGrid(
+        float(x0 - (k + m) * r), float(y1 + (k + m) * r), n + 2 * (k + m), n + 2 * (k + m), r
+    )
+    return template, tile, source
+
+
+def place_windows(points, cfg: AlignConfig) -> tuple[list[tuple[tuple[float, float], int]], int]:
+    """Windows on the clusters of ``points (N, 2)`` (frame positions, metres).
+
+    Clusters: points binned into cells of ``window / 2``, cells joined with their 8 neighbours
+    (clusters closer than that share windows).
+    A cluster that spans at most ``window`` gets one window centred on its bounding box; a
+    larger one is cut into ``ceil(span / window)`` equal blocks per axis, one window centred on
+    the points of each occupied block. Returns ``([(centre, frames), ...]`` (most frames first,
+    at most ``max_windows``), ``frames left unchecked)``.
+    """
+    pts = np.asarray(points, np.float64).reshape(-1, 2)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if not len(pts):
+        return [], 0
+    side = cfg.window
+    cells, inverse = np.unique(
+        np.floor(pts / (side / 2)).astype(np.int64), axis=0, return_inverse=True
+    )
+    inverse = inverse.reshape(-1)
+    index = {tuple(c): i for i, c in enumerate(cells.tolist())}
+    label = np.full(len(cells), -1)
+    for start in range(len(cells)):  # connected components of occupied cells
+        if label[start] >= 0:
+            continue
+        label[start], stack = start, [start]
+        while stack:
+            cx, cy = cells[stack.pop()]
+            for nb in ((cx + a, cy + b) for a in (-1, 0, 1) for b in (-1, 0, 1)):
+                j = index.get(nb)
+                if j is not None and label[j] < 0:
+                    label[j] = start
+                    stack.append(j)
+    out = []
+    point_label = label[inverse]
+    for lab in np.unique(label):
+        mine = pts[point_label == lab]
+        lo, hi = mine.min(axis=0), mine.max(axis=0)
+        blocks = np.maximum(1, np.ceil((hi - lo) / side - 1e-9)).astype(np.int64)
+        size = np.where(blocks > 1, (hi - lo) / blocks, 1.0)
+        block = np.minimum(np.floor((mine - lo) / size).astype(np.int64), blocks - 1)
+        keys, which = np.unique(block, axis=0, return_inverse=True)
+        which = which.reshape(-1)
+        for b in range(len(keys)):
+            part = mine[which == b]
+            c = (part.min(axis=0) + part.max(axis=0)) / 2
+            out.append(((float(c[0]), float(c[1])), len(part)))
+    out.sort(key=lambda item: (-item[1], item[0]))
+    kept = out[: cfg.max_windows]
+    return kept, int(sum(c for _, c in out[cfg.max_windows :]))
+
+
+def _template(target: np.ndarray, cfg: AlignConfig, res: float) -> np.ndarray:
+    band = ndimage.binary_dilation(target > 0.5, iterations=max(1, round(cfg.band / res)))
+    return np.where(band, 2.0 * target - 1.0, 0.0).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- the fit
 
 
 def _parabola(left: float, centre: float, right: float) -> float:
     denom = left - 2 * centre + right
     return float(np.clip(0.5 * (left - right) / denom, -0.5, 0.5)) if denom < 0 else 0.0
+
+
+def _subpixel(vol: np.ndarray, h: int, w: int) -> tuple[float, float]:
+    n = vol.shape[0]
+    dh = _parabola(vol[h - 1, w], vol[h, w], vol[h + 1, w]) if 0 < h < n - 1 else 0.0
+    dw = _parabola(vol[h, w - 1], vol[h, w], vol[h, w + 1]) if 0 < w < n - 1 else 0.0
+    return dh, dw
+
+
+def _sharpness(vol: np.ndarray, h: int, w: int, radius_px: float) -> float:
+    """``1 - (best score farther than radius_px from the peak) / peak`` in [0, 1]; 0 when the
+    peak is not positive, NaN when nothing lies that far inside the search range."""
+    peak = float(vol[h, w])
+    if not peak > 0:
+        return 0.0
+    hh, ww = np.ogrid[: vol.shape[0], : vol.shape[1]]
+    far = (hh - h) ** 2 + (ww - w) ** 2 > radius_px**2
+    if not far.any():
+        return float("nan")
+    return float(np.clip(1.0 - vol[far].max() / peak, 0.0, 1.0))
+
+
+def _shifted(vols: np.ndarray, dh: np.ndarray, dw: np.ndarray, cubic: bool = False) -> np.ndarray:
+    """``out[b, h, w] = vols[b]`` sampled at ``(h + dh[b], w + dw[b])``, 0 outside: bilinear
+    (vectorized), or a cubic spline (keeps a peak's height between pixels far better)."""
+    b, n, _ = vols.shape
+    if cubic:
+        out = np.zeros(vols.shape, np.float32)
+        for i in range(b):
+            if abs(dh[i]) < n and abs(dw[i]) < n:  # else wholly outside the searched shifts
+                out[i] = ndimage.shift(
+                    vols[i], (-dh[i], -dw[i]), order=3, mode="grid-constant", cval=0.0
+                )
+        return out
+    fh, fw = np.floor(dh), np.floor(dw)
+    ah, aw = (dh - fh)[:, None, None], (dw - fw)[:, None, None]
+    fh, fw = fh.astype(np.int64), fw.astype(np.int64)
+    idx = np.arange(n)
+    batch = np.arange(b)[:, None, None]
+    out = np.zeros(vols.shape, np.float32)
+    for oh, wh in ((0, 1 - ah), (1, ah)):
+        rows = idx[None, :] + (fh + oh)[:, None]  # (B, n)
+        rows_ok = (rows >= 0) & (rows < n)
+        for ow, ww in ((0, 1 - aw), (1, aw)):
+            cols = idx[None, :] + (fw + ow)[:, None]
+            ok = rows_ok[:, :, None] & ((cols >= 0) & (cols < n))[:, None, :]
+            r_idx, c_idx = np.clip(rows, 0, n - 1), np.clip(cols, 0, n - 1)
+            g = vols[batch, r_idx[:, :, None], c_idx[:, None, :]]
+            out += wh * ww * np.where(ok, g, 0.0)
+    return out
+
+
+def _rot(theta: float, scale: float) -> np.ndarray:
+    c, s = math.cos(theta) * scale, math.sin(theta) * scale
+    return np.array([[c, -s], [s, c]])
+
+
+def _fmt_xy(xy) -> str:
+    return f"({xy[0]:.0f}, {xy[1]:.0f}) m"
+
+
+def fit_windows(
+    windows: list[Window],
+    cfg: AlignConfig = AlignConfig(),
+    city: str = "map",
+    progress: bool = True,
+    check: bool = True,
+    unchecked_frames: int = 0,
+) -> Alignment:
+    """One city correction from all ``windows`` together, with its quality.
+
+    Args:
+      windows: at one working resolution and window size (:func:`window_grids`).
+      cfg: search ranges and acceptance thresholds.
+      city: named in reports and errors.
+      check: raise :class:`AlignmentError` when the fit is refused (else the problems are in
+        the returned :class:`Alignment`).
+      unchecked_frames: frames of windows beyond ``max_windows`` (report).
+    """
+    from seglocnet_jax import solver  # jax is imported only when a fit runs
+
+    if not windows:
+        raise AlignmentError(f"OSM alignment of {city!r}: no frames to place a fit window on")
+    res = windows[0].template_grid.resolution
+    n = windows[0].template_grid.height
+    k = _shift_px(cfg, res)
+    for win in windows:
+        if win.target.shape != (n, n) or win.template_grid.height != n:
+            raise ValueError(f"fit windows must all be ({n}, {n}), got {win.target.shape}")
+    tmpls = [_template(win.target, cfg, res) for win in windows]
+    weights = np.array([float(np.clip(t, 0, None).sum()) for t in tmpls])
+    used = [i for i in range(len(windows)) if weights[i] > 0]
+    if not used:
+        raise AlignmentError(
+            f"OSM alignment of {city!r}: the drivable area is empty in every fit window "
+            f"({sum(w.frames for w in windows)} frames): nothing to align"
+        )
+    wins = [windows[i] for i in used]
+    tm = np.stack([tmpls[i] for i in used])[:, None]  # (B, 1, n, n)
+    wt = weights[used]
+    centres = np.array([w.centre for w in wins])  # (B, 2)
+    centre = (wt[:, None] * centres).sum(0) / wt.sum()
+    steps = int(math.floor(cfg.max_rotation_deg / cfg.rotation_step_deg + 1e-9))
+    step = math.radians(cfg.rotation_step_deg)
+    angles = np.arange(-steps, steps + 1) * step
+    scales = np.asarray(sorted(cfg.scales), np.float64)
+    nv = 2 * k + 1
+    vols = np.zeros((len(wins), len(scales), len(angles), nv, nv), np.float32)
+    t = n + 2 * k
+    tile_grids = [
+        geometry.RasterGrid(
+            w.template_grid.x_min - k * res, w.template_grid.y_max + k * res, t, t, res
+        )
+        for w in wins
+    ]
+
+    def volumes(scale: float, angle: float) -> np.ndarray:  # (B, nv, nv) local shift scores
+        tiles = np.stack(
+            [
+                _warp(
+                    w.source,
+                    w.source_grid,
+                    g,
+                    Similarity(rotation=angle, scale=scale, centre=w.centre),
+                )
+                for w, g in zip(wins, tile_grids, strict=True)
+            ]
+        )[:, None]
+        out = solver.score_volume_batch(tm, tiles, num_rotations=4, batch_chunk=1)
+        return np.asarray(out)[:, 0]
+
+    total = len(scales) * len(angles)
+    with tqdm(total=total, desc=f"align OSM {city}", unit="cand", disable=not progress) as bar:
+        for i, s in enumerate(scales):
+            for j, a in enumerate(angles):
+                vols[:, i, j] = volumes(float(s), float(a))
+                bar.update()
+
+    # Each window alone: its best candidate and sub-pixel local shift (at the window centre).
+    radius = max(cfg.road_width / 2, 2 * res) / res
+    radius = min(radius, k * 0.9) if k > 0 else radius
+    own = []
+    for b in range(len(wins)):
+        i, j, h, w = np.unravel_index(int(np.argmax(vols[b])), vols[b].shape)
+        v = vols[b, i, j]
+        dh, dw = _subpixel(v, h, w)
+        own.append(
+            {
+                "score": float(v[h, w] / wt[b]),
+                "sharpness": _sharpness(v, h, w, radius),
+                "shift": np.array([-(w + dw - k) * res, (h + dh - k) * res]),
+                "on_bound": bool(h in (0, nv - 1) or w in (0, nv - 1)),
+            }
+        )
+
+    # The city: one similarity about `centre`; window b moves by shift + (sR - I) d_b. A
+    # rotation grid fine enough that the farthest window moves <= res / 2 per step, on window
+    # volumes interpolated linearly between the searched rotations, picks scale and rotation;
+    # then exact volumes at that rotation and its neighbours (hill climb) refine it.
+    d = centres - centre  # (B, 2)
+    reach = float(np.linalg.norm(d, axis=1).max())
+    sub = 1 if len(angles) == 1 else max(1, math.ceil(step * reach / (res / 2)))
+    fine = (len(angles) - 1) * sub + 1
+    fstep = step / sub
+
+    def joint_at(vol_b: np.ndarray, theta: float, scale: float, cubic: bool = False):
+        off = d @ (_rot(theta, scale) - np.eye(2)).T  # (B, 2) metres
+        return _shifted(vol_b, off[:, 1] / res, -off[:, 0] / res, cubic)
+
+    best = None
+    for i, s in enumerate(scales):
+        for f in range(fine):
+            j, frac = divmod(f, sub)
+            theta = angles[0] + f * fstep
+            contrib = joint_at(vols[:, i, j], theta, s)
+            if frac:
+                alpha = frac / sub
+                contrib = (1 - alpha) * contrib + alpha * joint_at(vols[:, i, j + 1], theta, s)
+            peak = float(contrib.sum(0).max())
+            if best is None or peak > best[0]:
+                best = (peak, i, f)
+    _, i, f = best
+    s_fit = float(scales[i])
+    exact = {}
+
+    def at(f_: float):  # exact joint at fine position f_: (peak, h, w, joint, contrib)
+        if f_ not in exact:
+            theta_ = float(angles[0] + f_ * fstep)
+            contrib_ = joint_at(volumes(s_fit, theta_), theta_, s_fit, cubic=True)
+            joint_ = contrib_.sum(0)
+            h_, w_ = np.unravel_index(int(np.argmax(joint_)), joint_.shape)
+            exact[f_] = (float(joint_[h_, w_]), h_, w_, joint_, contrib_)
+        return exact[f_]
+
+    for _ in range(2 * sub + 2):  # climb to a local maximum of the exact peaks
+        up = at(f + 1)[0] if f < fine - 1 else -np.inf
+        down = at(f - 1)[0] if f > 0 else -np.inf
+        if max(up, down) <= at(f)[0]:
+            break
+        f = f + 1 if up > down else f - 1
+    df = _parabola(at(f - 1)[0], at(f)[0], at(f + 1)[0]) if 0 < f < fine - 1 else 0.0
+    on_rot_bound = len(angles) > 1 and f in (0, fine - 1)
+    theta = float(angles[0] + (f + df) * fstep)
+    _, h, w, joint, contrib = at(f + df)  # exact at the refined rotation
+    dh, dw = _subpixel(joint, h, w)
+    shift = np.array([-(w + dw - k) * res, (h + dh - k) * res])
+    sim_score = float(joint[h, w] / wt.sum())
+    sim = Similarity(
+        shift=(float(shift[0]), float(shift[1])),
+        rotation=theta,
+        scale=s_fit,
+        centre=(float(centre[0]), float(centre[1])),
+        score=sim_score,
+    )
+    sharpness = _sharpness(joint, h, w, radius)
+    local = shift[None] + d @ (_rot(theta, s_fit) - np.eye(2)).T  # (B, 2) at the fit
+
+    # Per-window quality and status.
+    reports = []
+    min_s, min_sh = cfg.min_score, cfg.min_sharpness
+    for b, win in enumerate(wins):
+        o = own[b]
+        outside = bool(np.abs(local[b]).max() > cfg.max_shift + res / 2)
+        residual = float(np.linalg.norm(local[b] - o["shift"]))
+        sharp = not o["sharpness"] < min_sh  # NaN (not measurable) counts as sharp
+        if o["score"] < min_s:
+            status = "empty"
+        elif sharp and o["on_bound"]:
+            status = "on_bound"
+        elif sharp and residual > cfg.max_disagreement:
+            status = "disagrees"
+        elif outside:
+            status = "outside_search"
+        elif not sharp:
+            status = "flat"
+        else:
+            status = "ok"
+        reports.append(
+            {
+                "centre_m": [float(v) for v in win.centre],
+                "frames": int(win.frames),
+                "score": o["score"],
+                "score_at_fit": float(contrib[b, h, w] / wt[b]),
+                "sharpness": o["sharpness"],
+                "shift_m": [float(v) for v in o["shift"]],
+                "fit_shift_m": [float(v) for v in local[b]],
+                "residual_m": residual,
+                "on_bound": o["on_bound"],
+                "status": status,
+            }
+        )
+    for b in sorted(set(range(len(windows))) - set(used)):
+        win = windows[b]
+        reports.append(
+            {"centre_m": [float(v) for v in win.centre], "frames": int(win.frames)}
+            | {"status": "no_drivable"}
+        )
+    judged = [r for r in reports if r["status"] in ("ok", "disagrees")]
+    agreeing = [r for r in judged if r["status"] == "ok"]
+    agreement = len(agreeing) / len(judged) if judged else float("nan")
+    quality = {
+        "score": sim_score,
+        "sharpness": sharpness,
+        "windows": len(windows),
+        "sharp_windows": len(judged),
+        "agreement": agreement,
+        "max_residual_m": max((r["residual_m"] for r in judged), default=float("nan")),
+        "unchecked_frames": int(unchecked_frames),
+        "resolution": res,
+        "window_m": n * res,
+    }
+
+    problems, remedies = [], []
+    by = {s: [r for r in reports if r.get("status") == s] for s in ("empty", "on_bound")}
+    by["outside_search"] = [r for r in reports if r.get("status") == "outside_search"]
+
+    def where(rs, extra):
+        shown = ", ".join(
+            f"{_fmt_xy(r['centre_m'])} ({r['frames']} frames{extra(r)})" for r in rs[:3]
+        )
+        return shown + (f" and {len(rs) - 3} more" if len(rs) > 3 else "")
+
+    bigger = f"a larger search: {_PREFIX}.max_shift={2 * cfg.max_shift:g}"
+    if by["empty"]:
+        problems.append(
+            f"no OSM road matches the drivable area (score < min_score {min_s:g}) in "
+            f"{len(by['empty'])} of {len(windows)} window(s): "
+            + where(by["empty"], lambda r: f", score {r['score']:.3f}")
+            + " (the OSM extract does not cover these frames, or it is off by more than "
+            "max_shift there)"
+        )
+        remedies.append(f"an OSM extract that covers these frames (dataset.convert.osm.{city})")
+        remedies.append(bigger)
+    on_bound = bool(h in (0, nv - 1) or w in (0, nv - 1))
+    if on_bound or by["on_bound"] or by["outside_search"]:
+        what = []
+        if on_bound:
+            what.append(f"city shift ({shift[0]:+.1f}, {shift[1]:+.1f}) m")
+        if by["on_bound"]:
+            what.append(
+                "window(s) "
+                + where(
+                    by["on_bound"],
+                    lambda r: f", shift ({r['shift_m'][0]:+.1f}, {r['shift_m'][1]:+.1f}) m",
+                )
+            )
+        if by["outside_search"]:
+            what.append(
+                "window(s) where the city fit needs a shift beyond the search "
+                + where(
+                    by["outside_search"],
+                    lambda r: f", ({r['fit_shift_m'][0]:+.1f}, {r['fit_shift_m'][1]:+.1f}) m",
+                )
+            )
+        problems.append(
+            f"peak on the search bound (max_shift {cfg.max_shift:g} m): " + "; ".join(what)
+        )
+        if bigger not in remedies:
+            remedies.append(bigger)
+    if on_rot_bound:
+        problems.append(
+            f"rotation {math.degrees(theta):+.3f} deg on the search bound (max_rotation_deg "
+            f"{cfg.max_rotation_deg:g})"
+        )
+        remedies.append(f"a larger search: {_PREFIX}.max_rotation_deg={2 * cfg.max_rotation_deg:g}")
+    if len(scales) > 1 and i in (0, len(scales) - 1):
+        problems.append(
+            f"scale {scales[i]:.4f} on the search bound (scales {[float(s) for s in scales]})"
+        )
+        remedies.append(f"a wider {_PREFIX}.scales")
+    if sim_score < min_s:
+        problems.append(f"near-zero score {sim_score:.3f} < min_score {min_s:g}")
+    if sharpness < min_sh:
+        problems.append(
+            f"flat score: sharpness {sharpness:.3f} < min_sharpness {min_sh:g} (no distinct peak)"
+        )
+    if judged and agreement < cfg.min_agreement:
+        off = [r for r in judged if r["status"] == "disagrees"]
+        problems.append(
+            f"windows disagree: {len(agreeing)} of {len(judged)} sharp window(s) lie within "
+            f"max_disagreement {cfg.max_disagreement:g} m of the city fit (min_agreement "
+            f"{cfg.min_agreement:g}); off: "
+            + where(off, lambda r: f", {r['residual_m']:.1f} m")
+            + " (one correction cannot serve these areas)"
+        )
+        remedies.append(
+            f"if the OSM is known to be this inaccurate, a looser {_PREFIX}.max_disagreement "
+            "or min_agreement"
+        )
+    if problems:
+        remedies.append(
+            f"a manual correction: '+{_PREFIX}.manual.{city}={{shift: [dx, dy], rotation_deg: r, "
+            "scale: s, centre: [x, y]}' (metres in the dataset frame, degrees; {} for none in "
+            "this city)"
+        )
+        remedies.append(f"no correction at all: {_PREFIX}.enabled=false")
+    out = Alignment(city, sim, "fit", quality, tuple(reports), tuple(problems), tuple(remedies))
+    return out.check() if check else out
+
+
+def align_rasters(
+    target: np.ndarray,
+    source: np.ndarray,
+    grid: geometry.RasterGrid,
+    cfg: AlignConfig = AlignConfig(),
+    points=None,
+    city: str = "map",
+    progress: bool = True,
+    check: bool = True,
+) -> Alignment:
+    """:func:`fit_windows` on city rasters: windows on ``points (N, 2)`` (frame positions;
+    None: on the drivable pixels).
+
+    Args:
+      target: ``(H, W)`` {0, 1} dataset drivable area on ``grid`` (world = dataset frame).
+      source: ``(H, W)`` {0, 1} OSM road raster on the same grid, uncorrected.
+      grid: placement of both rasters.
+    """
+    target, source = np.asarray(target), np.asarray(source)
+    if target.shape != source.shape or target.shape != (grid.height, grid.width):
+        raise ValueError(
+            f"target {target.shape} and source {source.shape} must both match the "
+            f"grid ({grid.height}, {grid.width})"
+        )
+    if not np.any(target):
+        raise AlignmentError(f"OSM alignment of {city!r}: the drivable-area raster is empty")
+    factor = max(1, round(cfg.resolution / grid.resolution))
+    tgt, wgrid = downsample(target, grid, factor)
+    src, _ = downsample(source, grid, factor)
+    if points is None:
+        rows, cols = np.nonzero(tgt > 0.5)
+        if not len(rows):
+            rows, cols = np.nonzero(tgt > 0)
+        points = np.stack(wgrid.pixel_to_world(rows + 0.5, cols + 0.5), axis=1)
+    placed, unchecked = place_windows(points, cfg)
+    origin = (wgrid.x_min, wgrid.y_max)
+    windows = []
+    for c, frames in placed:
+        t_grid, _, s_grid = window_grids(c, cfg, wgrid.resolution, origin)
+        crop = Similarity()
+        windows.append(
+            Window(
+                _warp(tgt, wgrid, t_grid, crop),
+                t_grid,
+                _warp(src, wgrid, s_grid, crop),
+                s_grid,
+                frames,
+            )
+        )
+    return fit_windows(windows, cfg, city, progress, check, unchecked)
 
 
 def fit_similarity(
@@ -168,85 +902,65 @@ def fit_similarity(
     grid: geometry.RasterGrid,
     cfg: AlignConfig = AlignConfig(),
     progress: bool = True,
+    points=None,
 ) -> Similarity:
-    """The similarity that moves ``source`` (OSM roads) onto ``target`` (drivable area).
+    """The similarity that moves ``source`` (OSM roads) onto ``target`` (drivable area), fitted
+    in windows on ``points`` (default: the drivable area) by :func:`align_rasters`; raises
+    :class:`AlignmentError` when the fit is degenerate. Its ``score`` is the summed peak
+    correlation divided by the templates' positive weight (1.0: every drivable pixel is OSM
+    road and no OSM road lies in the band off the drivable area)."""
+    return align_rasters(target, source, grid, cfg, points, progress=progress).similarity
 
-    Args:
-      target: ``(H, W)`` {0, 1} dataset drivable area on ``grid`` (world = dataset frame).
-      source: ``(H, W)`` {0, 1} OSM road raster on the same grid, uncorrected.
-      grid: placement of both rasters.
-      cfg: search ranges.
 
-    Returns:
-      :class:`Similarity` about the centre of the drivable area; its ``score`` is the peak
-      correlation divided by the template's positive weight (1.0: every drivable pixel is OSM
-      road and no OSM road lies in the band off the drivable area).
-    """
-    from seglocnet_jax import solver  # jax is imported only when a fit runs
+# --------------------------------------------------------------------------- report
 
-    target, source = np.asarray(target), np.asarray(source)
-    if target.shape != source.shape or target.shape != (grid.height, grid.width):
-        raise ValueError(
-            f"target {target.shape} and source {source.shape} must both match the "
-            f"grid ({grid.height}, {grid.width})"
+
+def report_lines(city: str, a: dict, max_windows: int = 8) -> list[str]:
+    """Conversion-log lines of a manifest alignment entry (:meth:`Alignment.report`)."""
+
+    def num(v, fmt):  # -0.00 prints as +0.00
+        return format(round(float(v), 6) + 0.0, fmt)
+
+    sx, sy = (round(float(v), 2) + 0.0 for v in a["shift_m"])
+    line = (
+        f"  OSM correction {city}: shift ({sx:+.2f}, {sy:+.2f}) m, rotation "
+        f"{num(a['rotation_deg'], '+.3f')} deg, scale {a['scale']:.4f}, score {a['score']:.3f}"
+    )
+    method = a.get("method")
+    q = a.get("quality") or {}
+    if method == "fit" and q:
+        cx, cy = a["centre_m"]
+        agree = q.get("agreement", float("nan"))
+        line += (
+            f" [fit about ({cx:.1f}, {cy:.1f}) m; sharpness {q['sharpness']:.3f}; "
+            f"{q['windows']} window(s), {q['sharp_windows']} sharp"
+            + (
+                f", agreement {100 * agree:.0f}% (max residual {q['max_residual_m']:.2f} m)"
+                if agree == agree
+                else ""
+            )
+            + (f"; {q['unchecked_frames']} frames unchecked" if q.get("unchecked_frames") else "")
+            + "]"
         )
-    if not np.any(target):
-        raise ValueError("the drivable-area raster is empty: nothing to align")
-    factor = max(1, round(cfg.resolution / grid.resolution))
-    tgt, wgrid = _downsample(target, grid, factor)
-    src, _ = _downsample(source, grid, factor)
-    rows, cols = np.nonzero(tgt > 0.5)
-    if not len(rows):
-        rows, cols = np.nonzero(tgt > 0)
-    # Template: the drivable area's bounding box (square, even), capped at max_template.
-    row_c = (rows.min() + rows.max() + 1) // 2
-    col_c = (cols.min() + cols.max() + 1) // 2
-    size = int(max(rows.max() - rows.min(), cols.max() - cols.min())) + 2
-    size = min(size + size % 2, cfg.max_template - cfg.max_template % 2)
-    shift_px = int(math.ceil(cfg.max_shift / wgrid.resolution))
-    t_grid = _crop_grid(wgrid, row_c, col_c, size)
-    tile_grid = _crop_grid(wgrid, row_c, col_c, size + 2 * shift_px)
-    centre = wgrid.pixel_to_world(row_c, col_c)
-    identity = Similarity(centre=(float(centre[0]), float(centre[1])))
-    tmpl = _warp(tgt, wgrid, t_grid, identity)  # crop with zero fill, (S, S)
-    band = ndimage.binary_dilation(
-        tmpl > 0.5, iterations=max(1, round(cfg.band / wgrid.resolution))
-    )
-    tmpl = np.where(band, 2.0 * tmpl - 1.0, 0.0).astype(np.float32)[None]  # (1, S, S)
-    weight = float(np.clip(tmpl, 0, None).sum())
-    steps = int(math.floor(cfg.max_rotation_deg / cfg.rotation_step_deg + 1e-9))
-    angles = np.radians(np.arange(-steps, steps + 1) * cfg.rotation_step_deg)
-    scales = np.asarray(sorted(cfg.scales), np.float64)
-    peaks = np.full((len(scales), len(angles)), -np.inf)
-    best = None
-    total = len(scales) * len(angles)
-    with tqdm(total=total, desc="align OSM", unit="cand", disable=not progress) as bar:
-        for i, s in enumerate(scales):
-            for j, a in enumerate(angles):
-                cand = dataclasses.replace(identity, rotation=float(a), scale=float(s))
-                tile = _warp(src, wgrid, tile_grid, cand)[None]  # (1, T, T)
-                vol = np.asarray(solver.score_volume(tmpl, tile, num_rotations=4))[0]
-                h, w = np.unravel_index(int(np.argmax(vol)), vol.shape)
-                peaks[i, j] = vol[h, w]
-                if best is None or vol[h, w] > best[0]:
-                    best = (vol[h, w], i, j, vol, h, w)
-                bar.update()
-    _, i, j, vol, h, w = best
-    n = vol.shape[0]
-    dh = _parabola(vol[h - 1, w], vol[h, w], vol[h + 1, w]) if 0 < h < n - 1 else 0.0
-    dw = _parabola(vol[h, w - 1], vol[h, w], vol[h, w + 1]) if 0 < w < n - 1 else 0.0
-    # Refine the rotation between its neighbours (the shift is that of the best candidate).
-    da = (
-        _parabola(peaks[i, j - 1], peaks[i, j], peaks[i, j + 1]) if 0 < j < len(angles) - 1 else 0.0
-    )
-    dx, dy = geometry.cell_to_tile_offset(
-        h + dh, w + dw, resolution=wgrid.resolution, bev_size=size, tile_size=size + 2 * shift_px
-    )
-    # Template centre at tile centre + (dx, dy): target(p) ~ warped(p + d), so shift by -d.
-    return Similarity(
-        shift=(-float(dx), -float(dy)),
-        rotation=float(angles[j] + da * math.radians(cfg.rotation_step_deg)),
-        scale=float(scales[i]),
-        centre=identity.centre,
-        score=float(peaks[i, j] / max(weight, 1e-9)),
-    )
+    elif method:
+        line += f" [{method}]"
+    lines = [line]
+    windows = a.get("windows") or []
+    order = sorted(windows, key=lambda r: (r.get("status") == "ok", r.get("score", 0.0)))
+    for r in order[:max_windows]:
+        if "score" not in r:
+            lines.append(
+                f"    window {_fmt_xy(r['centre_m'])}, {r['frames']} frames: {r['status']}"
+            )
+            continue
+        lines.append(
+            f"    window {_fmt_xy(r['centre_m'])}, {r['frames']} frames: score {r['score']:.3f} "
+            f"(at fit {r['score_at_fit']:.3f}), sharpness {r['sharpness']:.3f}, shift "
+            f"({r['shift_m'][0]:+.2f}, {r['shift_m'][1]:+.2f}) m, residual "
+            f"{r['residual_m']:.2f} m: {r['status']}"
+        )
+    if len(order) > max_windows:
+        rest = order[max_windows:]
+        statuses = sorted({r.get("status") for r in rest})
+        lines.append(f"    ... {len(rest)} more window(s): {', '.join(statuses)}")
+    return lines

@@ -4,8 +4,11 @@ Per city: OSM comes from the user's extract (``ConvertConfig.osm[city]``), read 
 dataset's own map frame (``reader.projection(city)``: nuScenes topocentric about the map origin,
 Argoverse UTM minus the city origin) and clipped to the drivable area's surroundings. A
 similarity correction (:mod:`.real_align`) is fitted once per city by correlating the dataset's
-drivable area with the OSM road raster, stored in the manifest (``alignment``) and applied to
-every OSM geometry. HD = drivable area + corrected OSM buildings; SD = corrected OSM centrelines
+drivable area with the OSM road raster in windows on the city's frames (rasterized per window,
+never for the whole city), checked (a degenerate fit is refused, naming the remedies), stored in
+the manifest (``alignment``: the values, their quality per city and per window) and applied to
+every OSM geometry; ``dataset.convert.align.manual`` gives a city's correction by hand.
+HD = drivable area + corrected OSM buildings; SD = corrected OSM centrelines
 buffered to ``road_width`` + buildings. Rasters land in ``maps/<variant>/<city>.npz``
 (:func:`.variants.variant_path`: the dataset's city names are the keys) and
 ``manifest.map_variants`` exactly as :mod:`.variants` writes them, so the loader reads both the
@@ -18,6 +21,7 @@ import dataclasses
 import os
 
 import numpy as np
+import shapely
 from shapely import affinity
 
 from seglocnet_jax import fileio, geometry, maps
@@ -58,17 +62,53 @@ def city_geometry(reader, city: str, cfg, drivable) -> maps.CityGeometry:
     return dataclasses.replace(geom, name=city)
 
 
+def _window(drivable, roads, tree, centre, frames, cfg: ra.AlignConfig) -> ra.Window:
+    """The fit window around ``centre``: drivable area and OSM roads drawn at a fine resolution
+    (<= 0.5 m) and block-averaged to ``cfg.resolution``."""
+    t_grid, _, s_grid = ra.window_grids(centre, cfg)
+    f = ra.fine_factor(cfg)
+
+    def draw(geoms, grid):
+        fine = geometry.RasterGrid(
+            grid.x_min, grid.y_max, grid.height * f, grid.width * f, grid.resolution / f
+        )
+        return ra.downsample(maps.rasterize_geometries(geoms, fine), fine, f)[0]
+
+    target = draw(shapely.clip_by_rect(drivable, *t_grid.bounds), t_grid)
+    near = roads[tree.query(shapely.box(*s_grid.bounds))] if len(roads) else []
+    return ra.Window(target, t_grid, draw(list(near), s_grid), s_grid, frames)
+
+
 def fit_alignment(
-    city: maps.CityGeometry, drivable, cfg: ra.AlignConfig, progress: bool = True
-) -> ra.Similarity:
-    """Similarity moving ``city``'s OSM roads onto ``drivable`` (identity when disabled)."""
-    if not cfg.enabled or not city.roads:
-        c = drivable.centroid
-        return ra.Similarity(centre=(float(c.x), float(c.y)))
-    grid = geometry.RasterGrid.covering(drivable.bounds, margin=cfg.max_shift + 2 * cfg.band)
-    target = maps.rasterize_geometries(drivable, grid)  # (H, W)
-    source = maps.rasterize_geometries(list(maps.buffer_roads(city, cfg.road_width)), grid)
-    return ra.fit_similarity(target, source, grid, cfg, progress=progress)
+    city: maps.CityGeometry,
+    drivable,
+    cfg: ra.AlignConfig,
+    progress: bool = True,
+    points=None,
+    check: bool = True,
+) -> ra.Alignment:
+    """The correction moving ``city``'s OSM roads onto ``drivable``, with its quality.
+
+    Identity when ``cfg.enabled`` is false or the city has no OSM extract; ``cfg.manual[name]``
+    when given; else fitted in windows on ``points (N, 2)`` (the city's frame positions; None:
+    the drivable area's outline) by :func:`.real_align.fit_windows`, which refuses a degenerate
+    fit (:class:`.real_align.AlignmentError`) unless ``check`` is false.
+    """
+    name = city.name
+    c = drivable.centroid
+    if not cfg.enabled:
+        return ra.Alignment.identity(name, "disabled", (c.x, c.y))
+    if name in cfg.manual:
+        return ra.Alignment.manual(name, cfg.manual[name])
+    if not city.source:
+        return ra.Alignment.identity(name, "no_osm", (c.x, c.y))
+    if points is None:
+        points = shapely.get_coordinates(drivable.boundary)
+    placed, unchecked = ra.place_windows(np.asarray(points, np.float64)[:, :2], cfg)
+    roads = maps.buffer_roads(city, cfg.road_width) if city.roads else np.array([], object)
+    tree = shapely.STRtree(roads)
+    windows = [_window(drivable, roads, tree, xy, n, cfg) for xy, n in placed]
+    return ra.fit_windows(windows, cfg, name, progress, check, unchecked)
 
 
 def apply_alignment(city: maps.CityGeometry, sim: ra.Similarity) -> maps.CityGeometry:
@@ -93,17 +133,26 @@ def ensure_real_variants(
 ) -> dict:
     """Fits (or reuses) each city's alignment and writes the missing variant rasters.
 
-    Returns ``{city: alignment report}`` (shift m, rotation deg, scale, score, OSM path), also
-    stored in ``manifest.alignment``. A stored alignment fitted with another
-    ``dataset.convert.align`` config is refused, naming the keys; one fitted from another OSM
-    extract (or none) is fitted again and the OSM-dependent rasters of the city are redrawn.
-    With ``poses`` (city -> ``(N, 3)``), the report adds ``poses_on_road``: per variant, the
-    fraction of poses on its road channel (HD: ~1 for real ego poses; SD: a check of the OSM
-    correction).
+    Returns ``{city: alignment report}`` (:meth:`.real_align.Alignment.report`: shift m,
+    rotation deg, scale, score, method, quality, windows; plus the OSM path and the manual
+    entry), also stored in ``manifest.alignment``. The fit windows lie on ``poses`` (city ->
+    ``(N, 3)``; without, on the drivable area). Every city that needs a fit is fitted before
+    anything is drawn or stored, and refused fits raise one :class:`.real_align.AlignmentError`
+    naming each city, so a changed search config can be tried on the same directory. A stored
+    alignment fitted with another ``dataset.convert.align`` config (:data:`.real_align.FIT_KEYS`)
+    is refused, naming the keys; one fitted from another OSM extract (or none), or with another
+    ``manual`` entry, is fitted again and the OSM-dependent rasters of the city are redrawn.
+    With ``poses``, the report adds ``poses_on_road``: per variant, the fraction of poses on its
+    road channel (HD: ~1 for real ego poses; SD: a check of the OSM correction).
     """
     man = mf.read_manifest(dataset_dir)
     cities = sorted({c for s in man["splits"].values() for c in s["cities"]})
-    align_cfg = _plain_align(cfg.align)
+    align_cfg = cfg.align.identity()
+    unknown = sorted(set(cfg.align.manual) - set(cities))
+    if unknown:
+        raise RealDataError(
+            f"dataset.convert.align.manual names {unknown}, not cities of this dataset ({cities})"
+        )
     stored = man.get("alignment")
     if stored is not None:
         diff = mf.config_diff(stored["config"], align_cfg, "dataset.convert.align")
@@ -114,26 +163,47 @@ def ensure_real_variants(
             )
     reports = dict((stored or {}).get("cities", {}))
     vcfgs = [maps.MapConfig(**spec) for spec in cfg.map_variants]
+    todo = []  # (city, paths, drivable, OSM geometry, alignment report, refitted)
+    errors = []
     for city in cities:
         paths = {v.name: variant_path(dataset_dir, v.name, city) for v in vcfgs}
         osm_path = (cfg.osm or {}).get(city)
-        # A stored fit is reused only for the same OSM extract (none: identity, refit later).
-        reuse = city in reports and reports[city].get("osm") == osm_path
+        manual = cfg.align.manual.get(city)
+        # A stored fit is reused only for the same OSM extract (none: identity, refit later)
+        # and the same manual entry.
+        old = reports.get(city)
+        reuse = old is not None and old.get("osm") == osm_path and old.get("manual") == manual
         if reuse and all(os.path.exists(p) for p in paths.values()):
             continue
         drivable = reader.drivable(city)
         osm = city_geometry(reader, city, cfg, drivable)
-        sim = (
-            ra.Similarity.from_dict(reports[city])
-            if reuse
-            else fit_alignment(osm, drivable, cfg.align, progress)
+        if reuse:
+            todo.append((city, paths, drivable, osm, dict(old), False))
+            continue
+        points = None if poses is None or city not in poses else np.asarray(poses[city])
+        alignment = fit_alignment(osm, drivable, cfg.align, progress, points, check=False)
+        if alignment.problems:
+            errors.append(alignment.error())
+            continue
+        todo.append(
+            (
+                city,
+                paths,
+                drivable,
+                osm,
+                dict(alignment.report(), osm=osm_path, manual=manual),
+                True,
+            )
         )
-        if not reuse:  # rasters drawn with another correction are stale
+    if errors:
+        raise errors[0] if len(errors) == 1 else ra.AlignmentError("\n".join(map(str, errors)))
+    for city, paths, drivable, osm, report, refitted in todo:
+        if refitted:  # rasters drawn with another correction are stale
             for v in vcfgs:
                 if os.path.exists(paths[v.name]) and (v.kind == "sd" or "building" in v.channels):
                     os.remove(paths[v.name])
-        reports[city] = dict(sim.as_dict(), osm=osm_path)
-        osm = apply_alignment(osm, sim)
+        reports[city] = report
+        osm = apply_alignment(osm, ra.Similarity.from_dict(report))
         for v in vcfgs:
             if os.path.exists(paths[v.name]):
                 continue
@@ -149,18 +219,12 @@ def ensure_real_variants(
                 on_road = reports[city].setdefault("poses_on_road", {})
                 on_road[v.name] = drivable_fraction(raster, np.asarray(poses[city]))
         man = mf.read_manifest(dataset_dir)  # re-read: only our entries change
-        man["alignment"] = {"config": align_cfg, "cities": reports}
+        man["alignment"] = {"config": align_cfg, "checks": cfg.align.checks(), "cities": reports}
         for v in vcfgs:
             entry = man["map_variants"].setdefault(v.name, {"config": v.to_dict(), "files": {}})
             entry["files"][city] = os.path.relpath(paths[v.name], dataset_dir)
         fileio.write_json_atomic(mf.manifest_path(dataset_dir), man)
     return reports
-
-
-def _plain_align(cfg: ra.AlignConfig) -> dict:
-    d = dataclasses.asdict(cfg)
-    d["scales"] = [float(s) for s in d["scales"]]
-    return d
 
 
 def drivable_fraction(raster: maps.CityRaster, poses: np.ndarray) -> float:

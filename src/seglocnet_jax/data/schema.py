@@ -7,13 +7,26 @@ validates one and names the offending key. A *batch* is what the loader yields a
 model consumes: fixed shapes, NumPy arrays, keys ``BATCH_KEYS``.
 
 Frames: world = the city's local metric ENU frame (see :mod:`seglocnet_jax.geometry`); ego =
-x forward, y left, z up, origin at the vehicle reference point on the ground; camera = OpenCV
-(x right, y down, z forward). ``cam_to_ego`` maps homogeneous camera points to the ego frame.
+x forward, y left, z up, origin on the ground below the vehicle reference point (z = 0 is the
+road surface under the vehicle, so LiDAR voxel z ranges and the camera position embedding mean
+the same for every producer); camera = OpenCV (x right, y down, z forward) pinhole, with
+``intrinsics`` exact for the stored image (distorted images are remapped first).
+``cam_to_ego`` maps homogeneous camera points to the ego frame.
+
+A dataset whose own ego origin is not on the ground is shifted by its producer, LiDAR points and
+camera mounts alike: ``EGO_HEIGHT_M`` lists the documented heights of each dataset's ego origin
+above the ground (the readers' ``ego_height_m`` defaults).
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+# Height (m) of each source's own ego origin above the ground; producers lift their ego frame by
+# it. Simulator: on the ground by construction. nuScenes: the rear-axle centre projected onto the
+# ground (nuscenes-devkit). AV2: the rear-axle centre, ~0.33 m up (Argoverse maintainers; ground
+# points sit at z ~ -0.34 m in real sweeps).
+EGO_HEIGHT_M: dict[str, float] = {"sim": 0.0, "nuscenes": 0.0, "av2": 0.33}
 
 # key -> (dtype, shape with symbolic dims). N cameras, H x W images, P LiDAR points.
 SAMPLE_KEYS: dict[str, tuple[str, tuple]] = {

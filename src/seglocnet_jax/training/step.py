@@ -33,27 +33,58 @@ def make_mesh(num_devices: int | None = None) -> jax.sharding.Mesh:
     return jax.make_mesh((n,), ("data",), axis_types=(AxisType.Auto,), devices=devices[:n])
 
 
-def device_batch(batch: dict, mesh: jax.sharding.Mesh) -> dict:
+def batch_shard(mesh: jax.sharding.Mesh) -> tuple[int, int]:
+    """``(shard_index, shard_count)`` of this process's rows of a global batch on ``mesh``.
+
+    The batch is split along the mesh's devices in order, so this process's devices must form
+    one contiguous run of them: its rows are block ``shard_index`` of ``shard_count`` equal
+    blocks, what ``data.loader.make_loader(shard_options=ShardOptions(*batch_shard(mesh)))``
+    reads. ``(jax.process_index(), jax.process_count())`` on a mesh over all devices in their
+    usual order; ``(0, 1)`` in one process."""
+    devices = list(mesh.devices.flat)
+    mine = [i for i, d in enumerate(devices) if d.process_index == jax.process_index()]
+    if not mine:
+        raise ValueError(f"process {jax.process_index()} has no device in the mesh")
+    first, m = mine[0], len(mine)
+    if mine != list(range(first, first + m)) or first % m or len(devices) % m:
+        raise ValueError(
+            f"process {jax.process_index()} holds mesh positions {mine} of {len(devices)}: "
+            "a process's devices must be one contiguous, equally sized block of the mesh"
+        )
+    return first // m, len(devices) // m
+
+
+def device_batch(batch: dict, mesh: jax.sharding.Mesh, *, process_local: bool = True) -> dict:
     """Puts the device part of a host batch on the mesh, sharded along its leading axis.
 
-    ``batch`` is the global batch (every process's loader yields the same one for a seed);
-    each process places only the slices of its own devices, so the same code runs on one host
-    or many (``jax.distributed``)."""
+    ``process_local=True`` (training): ``batch`` is this process's rows of the global batch
+    (its loader reads shard :func:`batch_shard` of every batch), and the global array is built
+    from every process's part (``jax.make_array_from_process_local_data``); in one process that
+    is the whole batch, placed as it is. ``process_local=False``: ``batch`` is the whole global
+    batch (every process's loader yields the same one) and each process places only the slices
+    of its own devices."""
     sharding = NamedSharding(mesh, P("data"))
     n = mesh.devices.size
+    _, count = batch_shard(mesh) if process_local else (0, 1)
     out = {}
     for key, value in batch.items():
         if key in HOST_ONLY_KEYS:
             continue
         value = np.asarray(value)
-        if value.shape[0] % n:
+        rows = value.shape[0] * count  # the global batch size
+        if rows % n:
             raise ValueError(
-                f"batch size {value.shape[0]} (key {key!r}) is not divisible by the "
+                f"batch size {rows} (key {key!r}) is not divisible by the "
                 f"{n} devices of the mesh; set train.batch_size to a multiple of {n}"
             )
-        out[key] = jax.make_array_from_callback(
-            value.shape, sharding, lambda index, v=value: v[index]
-        )
+        if process_local:
+            out[key] = jax.make_array_from_process_local_data(
+                sharding, value, (rows, *value.shape[1:])
+            )
+        else:
+            out[key] = jax.make_array_from_callback(
+                value.shape, sharding, lambda index, v=value: v[index]
+            )
     return out
 
 
