@@ -67,7 +67,8 @@ PAPER = {
     "IV": {"road": {"R@1m": 42.5}, "building": {"R@1m": 37.4}, "hd": {"R@1m": 55.9}},
     "V": {"sd_w2.5": {"R@5m": 75.2}, "sd_w5": {"R@5m": 76.9}, "sd": {"R@5m": 80.3}},
 }
-COLS = ("R@1m", "R@2m", "R@5m", "R@10m", "R@1°", "R@2°", "R@5°", "R@10°", "APE", "AOE")
+COLS = ("R@1m", "R@2m", "R@5m", "R@10m", "R@1deg", "R@2deg", "R@5deg", "R@10deg", "APE", "AOE")
+HEAD = {c: c.replace("deg", "°") for c in COLS}
 IOU = ("IoU_road", "IoU_building")
 
 
@@ -168,7 +169,7 @@ def _wall(res) -> str:
 
 def _row_table(title, rows, data, split, paper=None, paper_label="paper"):
     """A paper-layout table: one row per job on ``split`` (+ IoU, wall time, command)."""
-    head = ["Method", *COLS, *IOU, "wall", "command"]
+    head = ["Method", *(HEAD[c] for c in COLS), *IOU, "wall", "command"]
     lines = [f"**{title}**", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for label, name in rows:
         d = data[name]
@@ -198,19 +199,23 @@ def _figure(path, title, groups, data, split):
     import matplotlib.pyplot as plt
     import numpy as np
 
-    metrics = ("R@1m", "R@5m", "R@1°")
-    labels = [label for label, _ in groups]
-    vals = np.array([[(_num(data[n], split, m) or 0.0) for m in metrics] for _, n in groups])
-    fig, ax = plt.subplots(figsize=(1.4 + 1.1 * len(groups), 3.2), dpi=100)
+    metrics = ("R@1m", "R@5m", "R@1deg")
+    labels = [label.replace(", ", ",\n").replace(" (", "\n(") for label, _ in groups]
+    fig, ax = plt.subplots(figsize=(1.6 + 1.2 * len(groups), 3.4), dpi=100)
     x = np.arange(len(groups))
+    for g, (_, name) in enumerate(groups):
+        if data[name]["results"] is None:  # not measured: say so, never draw a zero
+            ax.text(x[g], 4, "not run", ha="center", fontsize=8, color="0.4")
     for i, m in enumerate(metrics):
-        bars = ax.bar(x + (i - 1) * 0.27, vals[:, i], 0.27, label=m)
+        vals = [_num(data[n], split, m) for _, n in groups]
+        xs = [x[g] + (i - 1) * 0.27 for g, v in enumerate(vals) if v is not None]
+        bars = ax.bar(xs, [v for v in vals if v is not None], 0.27, label=HEAD[m])
         ax.bar_label(bars, fmt="%.0f", fontsize=7)
     ax.set_xticks(x, labels, fontsize=8)
-    ax.set_ylim(0, 105)
+    ax.set_ylim(0, 112)
     ax.set_ylabel("recall (%)")
     ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=7, ncol=3, loc="upper right")
+    ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.28), frameon=False)
     fig.tight_layout()
     tmp = path + ".tmp.png"
     fig.savefig(tmp)
@@ -287,7 +292,7 @@ def findings(data) -> list[tuple[str, bool | None, str]]:
     return out
 
 
-def collect(data, budget: str, out_md: str, fig_dir: str) -> str:
+def collect(data, budget: str, out_md: str, fig_dir: str, note: str = "") -> str:
     os.makedirs(fig_dir, exist_ok=True)
     rel = os.path.relpath(fig_dir, os.path.dirname(os.path.abspath(out_md)))
     parts = [
@@ -301,6 +306,7 @@ def collect(data, budget: str, out_md: str, fig_dir: str) -> str:
         "IoU of the predicted BEV in %. The paper's numbers (↳ rows) are on nuScenes (Table I) "
         "and Argoverse (III–V), quoted where the project tracks them.",
         "",
+        *([note, ""] if note else []),
     ]
     tables = [
         (
@@ -396,6 +402,7 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--out", default=os.path.join(REPO, "docs", "results.md"))
     ap.add_argument("--figures", default=os.path.join(REPO, "docs"))
+    ap.add_argument("--note", default="", help="a paragraph put under the header (collect)")
     args = ap.parse_args(argv)
     if not args.budget.startswith("budget="):
         ap.error(f"expected budget=cpu or budget=paper, got {args.budget!r}")
@@ -412,7 +419,7 @@ def main(argv=None) -> int:
         print(f"[paper] {len(jobs) - failed}/{len(jobs)} jobs finished", flush=True)
         return 1 if failed else 0
     data = load(JOBS, budget, args.extra, args.root)
-    print(collect(data, budget, args.out, args.figures))
+    print(collect(data, budget, args.out, args.figures, args.note))
     return 0
 
 
