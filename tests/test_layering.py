@@ -28,6 +28,7 @@ ALLOWED = {
     "viz": {"geometry", "maps"},
     "evaluation": {"geometry", "solver", "metrics", "model", "viz"},
     "training": {"geometry", "model"} | UTIL,
+    "tracking": {"geometry", "solver"},
     "app": {
         "geometry",
         "maps",
@@ -40,6 +41,7 @@ ALLOWED = {
         "viz",
         "evaluation",
         "training",
+        "tracking",
     }
     | UTIL,
 }

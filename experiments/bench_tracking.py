@@ -1,0 +1,111 @@
+"""Benchmarks one frame of the sequential filter (``seglocnet_jax.tracking``) at paper sizes.
+
+A frame is predict (motion, blur, window re-centring) + update (one score volume's
+log-likelihood; it returns the posterior's estimate too) on a ``(K, 129, 129)`` belief
+(K = 256 by default) tracking a synthetic drive (a peaked likelihood at the true cell plus
+distractors and noise; making it is not timed). Milliseconds per frame (compile excluded,
+median and best over the frames) and per stage (``estimate_ms``: a standalone
+:func:`tracking.estimate`, not part of the frame); the 1-minute load average is recorded
+because the figure depends on what else runs on the CPU. Progress goes to stderr; the last
+stdout line is JSON.
+
+    python experiments/bench_tracking.py [--num-rotations 256] [--frames 20]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from seglocnet_jax import tracking
+
+
+def _likelihood(cfg: tracking.TrackerConfig, belief, pose, rng) -> jax.Array:
+    """A frame's log-likelihood: a blob at the true cell, 3 distractor blobs and noise."""
+    k0, h0, w0 = np.asarray(tracking.world_to_cell(belief, pose, cfg))
+    h = np.arange(cfg.size)[:, None]
+    w = np.arange(cfg.size)[None, :]
+    ll = rng.normal(0.0, 0.5, (cfg.num_rotations, cfg.size, cfg.size)).astype(np.float32)
+    k = np.arange(cfg.num_rotations)
+    dk = np.minimum(np.abs(k - k0), cfg.num_rotations - np.abs(k - k0))[:, None, None]
+    ll += 20.0 * np.exp(-0.5 * (((h - h0) ** 2 + (w - w0) ** 2) / 4.0 + dk**2 / 4.0))
+    for _ in range(3):
+        hd, wd, kd = rng.integers(0, cfg.size, 2).tolist() + [rng.integers(cfg.num_rotations)]
+        dk = np.minimum(np.abs(k - kd), cfg.num_rotations - np.abs(k - kd))[:, None, None]
+        ll += 10.0 * np.exp(-0.5 * (((h - hd) ** 2 + (w - wd) ** 2) / 4.0 + dk**2 / 4.0))
+    return jnp.asarray(ll)
+
+
+def _block(tree):
+    return jax.block_until_ready(tree)
+
+
+def bench(num_rotations: int, frames: int, seed: int = 0) -> dict:
+    cfg = tracking.TrackerConfig(num_rotations=num_rotations)
+    rng = np.random.default_rng(seed)
+    step = np.array([2.0, 0.1, 0.02])  # m forward, m left, rad per frame
+    pose = np.array([500.0, 500.0, 0.3])
+    belief = tracking.init_belief(cfg, pose[:2] + 5.0)
+    times = {"predict": [], "update": [], "estimate": [], "frame": []}
+    for i in range(frames + 2):  # the first two frames compile (update's reset path too)
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        pose = pose + np.array([c * step[0] - s * step[1], s * step[0] + c * step[1], step[2]])
+        t0 = time.perf_counter()
+        belief, _ = _block(tracking.predict(belief, step, cfg))
+        t1 = time.perf_counter()
+        ll = _likelihood(cfg, belief, pose, rng)  # not timed: the network's job
+        t2 = time.perf_counter()
+        belief, info = _block(tracking.update(belief, ll, cfg))
+        t3 = time.perf_counter()
+        _block(tracking.estimate(belief, cfg))
+        t4 = time.perf_counter()
+        est = info["estimate"]
+        if i >= 2:
+            for key, dt in (
+                ("predict", t1 - t0),
+                ("update", t3 - t2),
+                ("estimate", t4 - t3),
+                ("frame", (t1 - t0) + (t3 - t2)),
+            ):
+                times[key].append(1000 * dt)
+        err = float(np.hypot(*(np.asarray(est["map_pose"][:2]) - pose[:2])))
+        print(
+            f"frame {i}: {1000 * ((t1 - t0) + (t3 - t2)):.1f} ms, error {err:.2f} m",
+            file=sys.stderr,
+            flush=True,
+        )
+    result = {"num_rotations": num_rotations, "size": cfg.size, "frames": frames}
+    for key, values in times.items():
+        result[f"{key}_ms"] = round(float(np.median(values)), 2)
+    result["frame_ms_best"] = round(float(np.min(times["frame"])), 2)
+    result["final_error_m"] = round(err, 3)
+    return result
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--num-rotations", type=int, default=256)
+    parser.add_argument("--frames", type=int, default=20, help="timed frames")
+    args = parser.parse_args(argv)
+    print(f"devices: {jax.devices()}", file=sys.stderr)
+    load_before = os.getloadavg()[0]
+    result = bench(args.num_rotations, args.frames)
+    result.update(
+        device=str(jax.devices()[0].platform),
+        cpu_count=os.cpu_count(),
+        load_avg_1min=round((load_before + os.getloadavg()[0]) / 2, 2),
+        target_ms=10.0,
+    )
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
