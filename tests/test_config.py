@@ -113,6 +113,8 @@ def test_unknown_key_stops_train_and_evaluate(app, override, key):
         ("map.channels=[sky]", "map.channels"),
         ("data.map_variants=[{kind: sd, road_width: 0}]", "road_width"),
         ("eval.bev_source=gt|model.variant=nm", "eval.bev_source"),
+        ("sim.sensors.max_range=300", "sim.sensors.max_range"),
+        ("sim.spacing_m=0", "sim.spacing_m"),
     ],
 )
 def test_bad_values_fail_before_any_work(override, key):

@@ -41,6 +41,13 @@ def parse_sim_config(sim_cfg: dict | None, prefix: str = "sim"):
         raise ConfigError(f"{prefix}.spacing_m must be a number > 0 (metres), got {spacing!r}")
     world_cfg = from_dict(sim.WorldConfig, sim_cfg.get("world"), f"{prefix}.world")
     sensor_cfg = from_dict(sim.SensorConfig, sim_cfg.get("sensors"), f"{prefix}.sensors")
+    from seglocnet_jax.data.records import LIDAR_RANGE
+
+    if not 0 < sensor_cfg.max_range < LIDAR_RANGE:  # stored LiDAR is fixed point within it
+        raise ConfigError(
+            f"{prefix}.sensors.max_range must be in (0, {LIDAR_RANGE:g}) m (the records' LiDAR "
+            f"range), got {sensor_cfg.max_range}"
+        )
     return float(spacing), world_cfg, sensor_cfg
 
 
