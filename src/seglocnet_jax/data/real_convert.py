@@ -24,7 +24,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data.real_align import AlignConfig, report_lines
+from seglocnet_jax.data.alignment import AlignConfig, report_lines
 from seglocnet_jax.data.real_common import (
     Frame,
     RealDataError,
