@@ -10,6 +10,7 @@ import pytest
 
 from seglocnet_jax import geometry as g
 from seglocnet_jax import tracking as tr
+from seglocnet_jax.tracking import motion, posterior
 
 K = 16  # 22.5 degree bins; the window is the solver's 129 x 129 cells at 0.5 m
 BIN = 2 * math.pi / K
@@ -291,7 +292,13 @@ def test_a_drive_is_deterministic_for_a_seed():
 
 
 def test_kernels_compile_once_per_config():
-    kernels = (tr._motion_plan, tr._rows_kernel, tr._cols_kernel, tr._update_kernel, tr.estimate)
+    kernels = (
+        motion._motion_plan,
+        motion._rows_kernel,
+        motion._cols_kernel,
+        posterior._update_kernel,
+        tr.estimate,
+    )
     poses = _drive(3)
     _run(CFG, poses, poses[0, :2], np.random.default_rng(0))
     before = [k._cache_size() for k in kernels]

@@ -1,0 +1,69 @@
+"""Sequential localization: a Bayes filter over the solver's pose grid.
+
+The belief is a probability volume ``prob (K, N, N)`` over the cells of a world-aligned window
+(``N = 129`` by default, ``0.5 m`` cells, ``K`` rotations): exactly the cells of the solver's
+score volume for a map tile centred on the window centre, so a frame's score volume is the
+likelihood of the belief's own cells. ``geometry`` owns what a cell means: cell ``(k, h, w)``
+is the pose ``window centre + geometry.cell_to_tile_offset(h, w)`` with
+``yaw = geometry.yaw_from_rotation(k)``.
+
+Cells sit on a *lattice* of pixel corners: lattice corner ``(row, col)`` is the world point
+``(origin_x + col * res, origin_y - row * res)``. With ``origin = (grid.x_min, grid.y_max)``
+of a :class:`geometry.RasterGrid` the lattice is that raster's pixel corners, the window centre
+is the centre of the tile ``geometry.crop(raster, *tile_corner(belief, cfg), tile_size)`` and
+``geometry.tile_window`` of :func:`window_centre` returns the same tile.
+
+One frame of a drive::
+
+    belief, info = predict(belief, odometry, cfg)   # move + widen; window follows the estimate
+    tile = crop(raster, *tile_corner(belief, cfg), tile_size)          # around the estimate
+    volume = solver.score_volume(bev, tile, K)                          # (K, N, N)
+    belief, info = update(belief, solver.log_softmax_volume(volume, T), cfg)
+    est = estimate(belief, cfg)
+
+* predict: each yaw slice is translated by the odometry rotated by that slice's yaw (bilinear
+  for the sub-cell part, blurred by a Gaussian whose sigma grows with the distance), then the
+  slices move along ``k`` by the yaw change (with wrap, blurred by the yaw noise). The window
+  moves by the integer cells that put the predicted MAP cell at its centre; mass that leaves is
+  dropped (reported) and the rest renormalized.
+* update: ``posterior ~ prior * exp(log_likelihood)``, with the maximum subtracted before the
+  exponential (log-sum-exp); ``floor`` mixes a uniform into the prior so that no cell is ever
+  impossible.
+* track loss: a CUSUM of the per-frame log Bayes factor "the prior predicted this frame" vs "a
+  uniform prior did" (``log sum prior * L - log mean L``), plus belief-shape tests (peak mass,
+  entropy) once the filter has locked on. A loss re-widens the prior (uniform, or a Gaussian
+  around the last estimate) and reapplies the frame's likelihood; losses are counted.
+
+All kernels are jitted once per config (static shapes). They are composed in Python: inside a
+single XLA program the CPU backend fuses the per-slice gathers into their producers and runs
+~10x slower, so each stage is its own program (one dispatch each, no host sync except the
+loss test of :func:`update`).
+"""
+
+from seglocnet_jax.tracking.belief import (
+    Belief,
+    TrackerConfig,
+    cell_to_world,
+    init_belief,
+    tile_corner,
+    window_centre,
+    world_to_cell,
+)
+from seglocnet_jax.tracking.motion import predict, recentre
+from seglocnet_jax.tracking.posterior import estimate, fit_temperature, in_credible_region, update
+
+__all__ = [
+    "TrackerConfig",
+    "Belief",
+    "init_belief",
+    "window_centre",
+    "tile_corner",
+    "world_to_cell",
+    "cell_to_world",
+    "predict",
+    "recentre",
+    "update",
+    "estimate",
+    "in_credible_region",
+    "fit_temperature",
+]

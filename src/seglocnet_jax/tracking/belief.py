@@ -1,0 +1,213 @@
+"""The belief: the filter's config, the probability volume over a re-centred window of the
+solver's pose cells, its construction and the cell <-> world mapping (see the package docstring)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from seglocnet_jax import geometry
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackerConfig:
+    """Configuration of the filter (hashable: the jitted kernels take it as a static argument).
+
+    Attributes:
+      num_rotations: K, yaw bins over the full turn (the solver's K).
+      size: window cells per axis, odd (the score volume's H = W: 129).
+      resolution: metres per cell.
+      bev_size: BEV pixels per side (tile side = size - 1 + bev_size: 256).
+      sigma_xy: m, translation noise (1 sigma, per axis) added every frame.
+      sigma_xy_per_m: m of translation noise per m travelled (added in quadrature).
+      sigma_yaw: rad, yaw noise added every frame.
+      sigma_yaw_per_rad: rad of yaw noise per rad turned (added in quadrature).
+      kernel_radius: half-width (cells, bins) of the blur kernels; a larger sigma is truncated.
+      floor: weight of a uniform mixed into the prior at every update.
+      lost_log_odds: nats; a loss when the CUSUM of the prior-vs-uniform log Bayes factor falls
+        below ``-lost_log_odds`` (0 disables).
+      lock_peak_mass: the filter locks on once the peak mass reaches this.
+      lost_peak_mass: when locked, a loss when the peak mass falls below this (0 disables).
+      lost_entropy: when locked, a loss when the normalized (x, y) entropy exceeds this
+        (1 disables).
+      peak_radius: m; the peak mass is the posterior mass within this (box) of the MAP (x, y).
+      recover_sigma: m; the prior after a loss: a Gaussian of this sigma around the window
+        centre (the last estimate), uniform over yaw; 0 means uniform over the window.
+    """
+
+    num_rotations: int = geometry.NUM_ROTATIONS
+    size: int = geometry.SCORE_SIZE
+    resolution: float = geometry.RESOLUTION
+    bev_size: int = geometry.BEV_SIZE
+    sigma_xy: float = 0.1
+    sigma_xy_per_m: float = 0.05
+    sigma_yaw: float = 0.005
+    sigma_yaw_per_rad: float = 0.05
+    kernel_radius: int = 3
+    floor: float = 1e-9
+    lost_log_odds: float = 10.0
+    lock_peak_mass: float = 0.5
+    lost_peak_mass: float = 0.05
+    lost_entropy: float = 0.9
+    peak_radius: float = 2.0
+    recover_sigma: float = 0.0
+
+    def __post_init__(self):
+        if self.num_rotations < 1:
+            raise ValueError(f"num_rotations must be >= 1, got {self.num_rotations}")
+        if self.size < 3 or self.size % 2 == 0:
+            raise ValueError(f"size must be odd and >= 3, got {self.size}")
+        if self.resolution <= 0:
+            raise ValueError(f"resolution must be > 0, got {self.resolution}")
+        if self.kernel_radius < 0:
+            raise ValueError(f"kernel_radius must be >= 0, got {self.kernel_radius}")
+        if not 0.0 <= self.floor < 1.0:
+            raise ValueError(f"floor must be in [0, 1), got {self.floor}")
+        for key in ("sigma_xy", "sigma_xy_per_m", "sigma_yaw", "sigma_yaw_per_rad"):
+            if getattr(self, key) < 0:
+                raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")
+        if self.lost_log_odds < 0 or self.recover_sigma < 0 or self.peak_radius < 0:
+            raise ValueError("lost_log_odds, recover_sigma and peak_radius must be >= 0")
+
+    @property
+    def centre(self) -> int:
+        """Index of the window's central cell along h and w (64)."""
+        return (self.size - 1) // 2
+
+    @property
+    def tile_size(self) -> int:
+        """Side of the map tile whose score volume is the window (256)."""
+        return self.size - 1 + self.bev_size
+
+    @property
+    def num_cells(self) -> int:
+        return self.num_rotations * self.size * self.size
+
+
+class Belief(NamedTuple):
+    """The filter state (a pytree).
+
+    Attributes:
+      prob: ``(K, N, N)`` float32, sums to 1: ``prob[k, h, w]`` of the window's cells.
+      centre: ``(2,)`` int32 lattice corner ``(row, col)`` of the window centre (= tile centre).
+      origin: ``(2,)`` float32 world ``(x, y)`` of lattice corner ``(0, 0)``.
+      cusum: ``()`` float32 <= 0, running CUSUM of the log Bayes factor (nats).
+      locked: ``()`` bool, the filter has locked on since the last loss.
+      losses: ``()`` int32, track losses detected so far.
+    """
+
+    prob: jax.Array
+    centre: jax.Array
+    origin: jax.Array
+    cusum: jax.Array
+    locked: jax.Array
+    losses: jax.Array
+
+
+# --------------------------------------------------------------------------- construction
+
+
+def _cell_offsets(cfg: TrackerConfig, xp=jnp):
+    """World ``(dx, dy)`` metres of each window column / row relative to the centre."""
+    idx = xp.arange(cfg.size)
+    dx, dy = geometry.cell_to_tile_offset(
+        idx, idx, cfg.resolution, bev_size=cfg.bev_size, tile_size=cfg.tile_size
+    )
+    return dx, dy  # (N,) over w, (N,) over h
+
+
+def init_belief(
+    cfg: TrackerConfig,
+    xy,
+    origin=(0.0, 0.0),
+    *,
+    sigma: float | None = None,
+    yaw: float | None = None,
+    yaw_sigma: float | None = None,
+) -> Belief:
+    """The belief before the first frame, its window centred on the prior ``xy`` (world m)
+    snapped to the nearest lattice corner.
+
+    Args:
+      xy: ``(2,)`` coarse position prior, world metres.
+      origin: world ``(x, y)`` of lattice corner ``(0, 0)``: ``(grid.x_min, grid.y_max)`` puts
+        the lattice on a raster's pixel corners.
+      sigma: m; ``None``: uniform over the window, else a Gaussian around ``xy``.
+      yaw, yaw_sigma: rad; a wrapped Gaussian over yaw (``None``: uniform).
+    """
+    x, y = (float(v) for v in xy)
+    ox, oy = (float(v) for v in origin)
+    row = int(np.round((oy - y) / cfg.resolution))
+    col = int(np.round((x - ox) / cfg.resolution))
+    dx, dy = _cell_offsets(cfg, np)
+    cx, cy = ox + col * cfg.resolution, oy - row * cfg.resolution
+    log_xy = np.zeros((cfg.size, cfg.size))
+    if sigma is not None:
+        ex, ey = cx + dx[None, :] - x, cy + dy[:, None] - y
+        log_xy = -0.5 * (ex**2 + ey**2) / max(sigma, 1e-6) ** 2
+    log_k = np.zeros(cfg.num_rotations)
+    if yaw is not None:
+        yaws = geometry.yaw_from_rotation(np.arange(cfg.num_rotations), cfg.num_rotations)
+        err = geometry.wrap_angle(yaws - yaw)
+        log_k = -0.5 * err**2 / max(yaw_sigma or 0.0, 1e-6) ** 2
+    logp = log_k[:, None, None] + log_xy[None]
+    prob = np.exp(logp - logp.max())
+    return Belief(
+        prob=jnp.asarray(prob / prob.sum(), jnp.float32),
+        centre=jnp.asarray([row, col], jnp.int32),
+        origin=jnp.asarray([ox, oy], jnp.float32),
+        cusum=jnp.zeros((), jnp.float32),
+        locked=jnp.zeros((), bool),
+        losses=jnp.zeros((), jnp.int32),
+    )
+
+
+def window_centre(belief: Belief, cfg: TrackerConfig) -> np.ndarray:
+    """World ``(x, y)`` of the window centre (the tile centre), float64 on the host."""
+    row, col = np.asarray(belief.centre, np.int64)
+    ox, oy = np.asarray(belief.origin, np.float64)
+    return np.array([ox + col * cfg.resolution, oy - row * cfg.resolution])
+
+
+def tile_corner(belief: Belief, cfg: TrackerConfig) -> tuple[int, int]:
+    """Top-left pixel ``(row0, col0)`` of the tile to cut (``geometry.crop``) from a raster
+    whose pixel corners are the lattice."""
+    row, col = (int(v) for v in np.asarray(belief.centre))
+    half = cfg.tile_size // 2
+    return row - half, col - half
+
+
+def world_to_cell(belief: Belief, pose, cfg: TrackerConfig) -> jax.Array:
+    """World poses ``(..., 3)`` to continuous window cells ``(..., 3)`` ``(k in [0, K), h, w)``
+    (round for the GT cell; outside ``[0, N)`` when the pose is outside the window)."""
+    pose = jnp.asarray(pose, jnp.float32)
+    c = belief.centre.astype(jnp.float32)
+    cx = belief.origin[0] + c[1] * cfg.resolution
+    cy = belief.origin[1] - c[0] * cfg.resolution
+    h, w = geometry.tile_offset_to_cell(
+        pose[..., 0] - cx,
+        pose[..., 1] - cy,
+        cfg.resolution,
+        bev_size=cfg.bev_size,
+        tile_size=cfg.tile_size,
+    )
+    k = geometry.rotation_from_yaw(pose[..., 2], cfg.num_rotations)
+    k = jnp.where(k >= cfg.num_rotations, k - cfg.num_rotations, k)  # float32 mod can give K
+    return jnp.stack([k, h, w], axis=-1)
+
+
+def cell_to_world(belief: Belief, cell, cfg: TrackerConfig) -> jax.Array:
+    """Window cells ``(..., 3)`` ``(k, h, w)`` (may be fractional) to world poses ``(..., 3)``."""
+    cell = jnp.asarray(cell, jnp.float32)
+    c = belief.centre.astype(jnp.float32)
+    dx, dy = geometry.cell_to_tile_offset(
+        cell[..., 1], cell[..., 2], cfg.resolution, bev_size=cfg.bev_size, tile_size=cfg.tile_size
+    )
+    x = belief.origin[0] + c[1] * cfg.resolution + dx
+    y = belief.origin[1] - c[0] * cfg.resolution + dy
+    yaw = geometry.yaw_from_rotation(cell[..., 0], cfg.num_rotations)
+    return jnp.stack([x, y, yaw], axis=-1)

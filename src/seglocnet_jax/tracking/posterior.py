@@ -1,0 +1,211 @@
+"""Update by a frame's likelihood, estimates, credible regions, track-loss detection and
+recovery, and the likelihood temperature fit (see the package docstring)."""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from seglocnet_jax import geometry, solver
+from seglocnet_jax.tracking.belief import (
+    Belief,
+    TrackerConfig,
+    _cell_offsets,
+    cell_to_world,
+)
+from seglocnet_jax.tracking.motion import _map_cell
+
+
+def _marginal_xy(prob):
+    """``sum_k prob[k]`` as ``(N, N)``: a matrix-vector product (XLA's CPU reduction over the
+    major axis is ~30x slower)."""
+    k_dim, n, _ = prob.shape
+    ones = jnp.ones((1, k_dim), prob.dtype)
+    return (ones @ prob.reshape(k_dim, n * n)).reshape(n, n)
+
+
+def _estimate(belief: Belief, cfg: TrackerConfig) -> dict:
+    """See :func:`estimate`."""
+    prob = belief.prob
+    cell = _map_cell(prob)
+    p_xy = _marginal_xy(prob)  # (N, N)
+    p_k = prob.reshape(cfg.num_rotations, -1).sum(axis=1)  # (K,)
+    r = int(round(cfg.peak_radius / cfg.resolution))
+    box = jax.lax.dynamic_slice(jnp.pad(p_xy, r), (cell[1], cell[2]), (2 * r + 1, 2 * r + 1))
+    entropy = -jnp.sum(jnp.where(p_xy > 0, p_xy * jnp.log(jnp.maximum(p_xy, 1e-38)), 0.0))
+    dx, dy = _cell_offsets(cfg)
+    centre = cell_to_world(belief, jnp.array([0.0, cfg.centre, cfg.centre]), cfg)[:2]
+    m_x, m_y = jnp.sum(p_xy.sum(0) * dx), jnp.sum(p_xy.sum(1) * dy)
+    ex, ey = dx[None, :] - m_x, dy[:, None] - m_y
+    cxx, cyy, cxy = jnp.sum(p_xy * ex * ex), jnp.sum(p_xy * ey * ey), jnp.sum(p_xy * ex * ey)
+    yaws = geometry.yaw_from_rotation(jnp.arange(cfg.num_rotations), cfg.num_rotations)
+    cs, sn = jnp.sum(p_k * jnp.cos(yaws)), jnp.sum(p_k * jnp.sin(yaws))
+    resultant = jnp.clip(jnp.hypot(cs, sn), 1e-12, 1.0)
+    return {
+        "map_cell": cell,
+        "map_pose": cell_to_world(belief, cell, cfg),
+        "mean_pose": jnp.stack([centre[0] + m_x, centre[1] + m_y, jnp.arctan2(sn, cs)]),
+        "cov_xy": jnp.array([[cxx, cxy], [cxy, cyy]]),
+        "yaw_std": jnp.sqrt(-2.0 * jnp.log(resultant)),
+        "peak_mass": box.sum(),
+        "entropy": entropy / math.log(cfg.size * cfg.size),
+        "locked": belief.locked,
+        "losses": belief.losses,
+    }
+
+
+def _reset_prior(cfg: TrackerConfig):
+    """The re-widened prior ``(N, N)`` over (x, y) after a loss (uniform over yaw)."""
+    if cfg.recover_sigma <= 0:
+        return jnp.full((cfg.size, cfg.size), 1.0 / (cfg.size * cfg.size), jnp.float32)
+    dx, dy = _cell_offsets(cfg)
+    g = jnp.exp(-0.5 * (dx[None, :] ** 2 + dy[:, None] ** 2) / cfg.recover_sigma**2)
+    return (g / g.sum()).astype(jnp.float32)
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def _update_kernel(belief: Belief, log_lik, cfg: TrackerConfig):
+    n = cfg.num_cells
+    lik = jnp.exp(log_lik - log_lik.max())  # (K, N, N) in (0, 1], max 1
+    prior = belief.prob
+    z_prior = jnp.sum(prior * lik)  # sum prior * L (prior sums to 1)
+    z_mean = jnp.sum(lik) / n  # sum uniform * L
+    # z = 0 only when floor = 0 and the prior misses every cell the likelihood allows: then
+    # the agreement is -inf and the loss test below resets the belief.
+    z = jnp.maximum((1.0 - cfg.floor) * z_prior + cfg.floor * z_mean, 1e-38)
+    post = ((1.0 - cfg.floor) * prior + cfg.floor / n) * lik / z
+    stats = _estimate(belief._replace(prob=post), cfg)
+    agreement = jnp.log(z) - jnp.log(z_mean)  # log Bayes factor, this frame (nats)
+    cusum = jnp.minimum(0.0, belief.cusum + agreement)
+    by_odds = (cfg.lost_log_odds > 0) & (cusum < -cfg.lost_log_odds)
+    by_shape = belief.locked & (
+        (stats["peak_mass"] < cfg.lost_peak_mass) | (stats["entropy"] > cfg.lost_entropy)
+    )
+    lost = by_odds | by_shape
+    locked = belief.locked | (stats["peak_mass"] >= cfg.lock_peak_mass)
+    new = belief._replace(prob=post, cusum=cusum, locked=locked)
+    stats.update(locked=locked)
+    return new, {"agreement": agreement, "lost": lost, "estimate": stats}
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def _reset_kernel(belief: Belief, log_lik, cfg: TrackerConfig):
+    lik = jnp.exp(log_lik - log_lik.max())
+    post = _reset_prior(cfg)[None] * lik
+    new = belief._replace(
+        prob=post / post.sum(),
+        cusum=jnp.zeros((), jnp.float32),
+        locked=jnp.zeros((), bool),
+        losses=belief.losses + 1,
+    )
+    return new, _estimate(new, cfg)
+
+
+def update(belief: Belief, log_likelihood, cfg: TrackerConfig) -> tuple[Belief, dict]:
+    """Bayes update with one frame's log-likelihood over the window's cells.
+
+    Args:
+      log_likelihood: ``(K, N, N)`` float, up to an additive constant: e.g.
+        ``solver.log_softmax_volume(volume, temperature)`` of the frame's score volume, the
+        tile cut around this belief's window (see :func:`fit_temperature`).
+
+    Returns:
+      The posterior and ``{"agreement": log Bayes factor of this frame (prior vs uniform,
+      nats), "lost": a track loss was detected (the posterior is then the re-widened prior
+      times this frame's likelihood), "estimate": :func:`estimate` of the returned
+      posterior}``.
+    """
+    log_lik = jnp.asarray(log_likelihood, jnp.float32)
+    expected = (cfg.num_rotations, cfg.size, cfg.size)
+    if log_lik.shape != expected:
+        raise ValueError(f"log_likelihood must be {expected}, got {log_lik.shape}")
+    new, info = _update_kernel(belief, log_lik, cfg)
+    if bool(info["lost"]):  # the one host sync of a frame: rare path, its own program
+        new, est = _reset_kernel(new, log_lik, cfg)
+        info = {**info, "estimate": est}
+    return new, info
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def estimate(belief: Belief, cfg: TrackerConfig) -> dict:
+    """Point estimates and spread of a belief, world frame.
+
+    Returns:
+      ``map_cell (3,)`` int32 ``(k, h, w)``; ``map_pose (3,)`` its world pose ``(x, y, yaw)``;
+      ``mean_pose (3,)`` the (x, y) mean and the circular mean yaw; ``cov_xy (2, 2)`` m^2;
+      ``yaw_std`` rad (circular, ``sqrt(-2 ln R)``); ``peak_mass`` (mass within
+      ``peak_radius`` of the MAP (x, y), all yaws); ``entropy`` of the (x, y) marginal
+      normalized to [0, 1]; ``locked``; ``losses``.
+    """
+    return _estimate(belief, cfg)
+
+
+@functools.partial(jax.jit, static_argnames="mass")
+def in_credible_region(belief: Belief, cell, mass: float = 0.9) -> jax.Array:
+    """Whether window cell ``(k, h, w)`` (int) lies in the smallest set of cells holding
+    ``mass`` of the belief (the highest-probability cells, accumulated in descending order).
+
+    Equal to sorting the probabilities, accumulating until ``mass`` is reached and testing
+    ``p[cell] >= threshold``, but one pass: the cell is inside iff the mass of the cells
+    strictly more probable than it is below ``mass``. False outside the window.
+    """
+    cell = jnp.asarray(cell, jnp.int32)
+    k_dim, n, _ = belief.prob.shape
+    inside = (cell[1] >= 0) & (cell[1] < n) & (cell[2] >= 0) & (cell[2] < n)
+    h, w = jnp.clip(cell[1], 0, n - 1), jnp.clip(cell[2], 0, n - 1)
+    p = belief.prob[cell[0] % k_dim, h, w]  # k wraps (a rounded k may be K)
+    above = jnp.sum(jnp.where(belief.prob > p, belief.prob, 0.0))
+    return inside & (above < mass)
+
+
+# --------------------------------------------------------------------------- temperature
+
+
+def fit_temperature(
+    volumes, gt_cells, bounds: tuple[float, float] = (1e-2, 1e5), iters: int = 40
+) -> float:
+    """The temperature ``T`` maximizing the mean log-likelihood of the GT cells,
+    ``mean_b log_softmax(volumes[b] / T)[gt_cells[b]]`` (fit it on a validation split).
+
+    The objective is concave in ``1 / T``, so a log-spaced grid over ``bounds`` brackets the
+    optimum and a golden-section search on ``log T`` refines it.
+
+    Args:
+      volumes: ``(B, K, H, W)`` raw score volumes.
+      gt_cells: ``(B, 3)`` int GT cells ``(k, h, w)`` (inside the volumes).
+    """
+    volumes = jnp.asarray(volumes, jnp.float32)
+    cells = np.asarray(gt_cells, np.int64)
+    b_dim, k_dim, h_dim, w_dim = volumes.shape
+    if cells.shape != (b_dim, 3):
+        raise ValueError(f"gt_cells must be ({b_dim}, 3), got {cells.shape}")
+    if (cells < 0).any() or (cells >= np.array([k_dim, h_dim, w_dim])).any():
+        raise ValueError("gt_cells must lie inside the volumes")
+    index = (np.arange(b_dim), cells[:, 0], cells[:, 1], cells[:, 2])
+
+    @jax.jit
+    def mean_ll(log_t):  # the very log-likelihood that update() is fed
+        return jnp.mean(solver.log_softmax_volume(volumes, jnp.exp(log_t))[index])
+
+    lo, hi = math.log(bounds[0]), math.log(bounds[1])
+    grid = np.linspace(lo, hi, 25)
+    values = [float(mean_ll(t)) for t in grid]
+    i = int(np.argmax(values))
+    a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+    ratio = (math.sqrt(5) - 1) / 2
+    c, d = b - ratio * (b - a), a + ratio * (b - a)
+    fc, fd = float(mean_ll(c)), float(mean_ll(d))
+    for _ in range(iters):
+        if fc >= fd:
+            b, d, fd = d, c, fc
+            c = b - ratio * (b - a)
+            fc = float(mean_ll(c))
+        else:
+            a, c, fc = c, d, fd
+            d = a + ratio * (b - a)
+            fd = float(mean_ll(d))
+    return float(math.exp((a + b) / 2))
