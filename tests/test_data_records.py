@@ -198,8 +198,8 @@ def test_version_1_records_and_datasets_are_refused_with_the_remedy(tmp_path):
 
 
 def _bench():
-    path = os.path.join(os.path.dirname(__file__), "..", "experiments", "bench_data.py")
-    spec = importlib.util.spec_from_file_location("bench_data", path)
+    path = os.path.join(os.path.dirname(__file__), "..", "experiments", "bench_records.py")
+    spec = importlib.util.spec_from_file_location("bench_records", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod

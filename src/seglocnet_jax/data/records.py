@@ -36,7 +36,7 @@ AV2) come back bit-exactly. Coordinates must be within ``LIDAR_RANGE`` = 256 m (
 ``round(coordinate / step)`` must fit int16, -256 m to 255.992 m): a point outside is an error
 naming the record, never wrapped or clipped (sensor ranges are 70-200 m). Intensity is clipped to
 the schema's ``[0, 1]`` explicitly. A ~30k-point sweep is 210 kB before zlib and ~105 kB after
-(simulator and synthetic street sweeps, ``experiments/bench_data.py``), instead of 480 kB of
+(simulator and synthetic street sweeps, ``experiments/bench_records.py``), instead of 480 kB of
 float32.
 
 Version 1 (float32 LiDAR, PNG images only) is refused with the remedy (prepare again), both per
@@ -241,14 +241,14 @@ def encode_sample(
         elif key == "lidar":
             fields[key] = _encode_lidar(np.asarray(value), where)
         else:
-            arr = np.ascontiguousarray(value)
-            fields[key] = {
-                "t": "arr",
-                "dtype": arr.dtype.str,
-                "shape": list(arr.shape),
-                "b": arr.tobytes(),
-            }
+            fields[key] = array_field(value)
     return MAGIC + msgpack.packb({"v": RECORD_VERSION, "f": fields}, use_bin_type=True)
+
+
+def array_field(value) -> dict:
+    """A raw array field (every array but images and LiDAR): dtype, shape, C-order bytes."""
+    arr = np.ascontiguousarray(value)
+    return {"t": "arr", "dtype": arr.dtype.str, "shape": list(arr.shape), "b": arr.tobytes()}
 
 
 def _decode_images(key: str, enc: dict, fmt: str, where: str) -> np.ndarray:
