@@ -109,37 +109,59 @@ def write_osm(path: str, to_lonlat, warp=None, origins=((0.0, 0.0),)) -> None:
     :func:`write_argoverse` ``(origins=...)``; leave one out for an area without OSM.
     """
     warp = warp or (lambda xy: xy)
-    lines = ['<?xml version="1.0" encoding="UTF-8"?>', '<osm version="0.6" generator="fixture">']
-    ways, node_id = [], 0
+    osm = OsmXml("fixture")
 
     def nodes(points):
-        nonlocal node_id
         xy = warp(np.asarray(points, np.float64))
-        lon, lat = to_lonlat(xy[:, 0], xy[:, 1])
-        ids = []
-        for lo, la in zip(lon, lat, strict=True):
-            node_id += 1
-            lines.append(f' <node id="{node_id}" version="1" lat="{la:.9f}" lon="{lo:.9f}"/>')
-            ids.append(node_id)
-        return ids
+        return osm.nodes(*to_lonlat(xy[:, 0], xy[:, 1]))
 
     for ox, oy in origins:
         o = np.array([ox, oy], np.float64)
         for a, b in ROADS:
             a, b = np.asarray(a) + o, np.asarray(b) + o
-            pts = [a + t * (b - a) for t in np.linspace(0, 1, 5)]
-            ways.append((nodes(pts), {"highway": "residential"}))
+            osm.way(nodes([a + t * (b - a) for t in np.linspace(0, 1, 5)]), highway="residential")
         for x0, y0, x1, y1 in BUILDINGS:
             ids = nodes(np.array([(x0, y0), (x1, y0), (x1, y1), (x0, y1)]) + o)
-            ways.append((ids + ids[:1], {"building": "yes"}))
-    for i, (ids, tags) in enumerate(ways):
-        lines.append(f' <way id="{1000 + i}" version="1">')
-        lines += [f'  <nd ref="{n}"/>' for n in ids]
-        lines += [f'  <tag k="{k}" v="{v}"/>' for k, v in tags.items()]
-        lines.append(" </way>")
-    lines.append("</osm>")
-    with open(path, "w") as f:
-        f.write("\n".join(lines) + "\n")
+            osm.way(ids + ids[:1], building="yes")
+    osm.write(path)
+
+
+class OsmXml:
+    """An OSM XML file built node by node and way by way (the fixtures' one OSM writer)."""
+
+    def __init__(self, generator: str = "test"):
+        self.lines = [
+            '<?xml version="1.0" encoding="UTF-8"?>',
+            f'<osm version="0.6" generator="{generator}">',
+        ]
+        self.ways: list[tuple[list[int], dict]] = []
+        self.node_id = 0
+
+    def nodes(self, lon, lat) -> list[int]:
+        """Adds nodes at ``lon``, ``lat`` (degrees); returns their ids."""
+        ids = []
+        for lo, la in zip(lon, lat, strict=True):
+            self.node_id += 1
+            self.lines.append(
+                f' <node id="{self.node_id}" version="1" lat="{la:.9f}" lon="{lo:.9f}"/>'
+            )
+            ids.append(self.node_id)
+        return ids
+
+    def way(self, ids: list[int], **tags) -> None:
+        self.ways.append((list(ids), tags))
+
+    def write(self, path) -> str:
+        lines = list(self.lines)
+        for i, (ids, tags) in enumerate(self.ways):
+            lines.append(f' <way id="{1000 + i}" version="1">')
+            lines += [f'  <nd ref="{n}"/>' for n in ids]
+            lines += [f'  <tag k="{k}" v="{v}"/>' for k, v in tags.items()]
+            lines.append(" </way>")
+        lines.append("</osm>")
+        with open(path, "w") as f:
+            f.write("\n".join(lines) + "\n")
+        return str(path)
 
 
 # --------------------------------------------------------------------------- nuScenes
@@ -423,19 +445,7 @@ def write_argoverse(root: str, logs: dict | None = None, origins: dict | None = 
             for k, t in enumerate(sweeps):
                 pts = lidar_points(100 + k)
                 facts["lidar"][f"{log_id}/{t}"] = pts
-                table = pa.table(
-                    {
-                        "x": pa.array(pts[:, 0].astype(np.float16)),
-                        "y": pa.array(pts[:, 1].astype(np.float16)),
-                        "z": pa.array(pts[:, 2].astype(np.float16)),
-                        "intensity": pa.array(pts[:, 3].astype(np.uint8)),
-                        "laser_number": pa.array(np.zeros(len(pts), np.uint8)),
-                        "offset_ns": pa.array(np.zeros(len(pts), np.uint32)),
-                    }
-                )
-                path = os.path.join(d, "sensors", "lidar", f"{t}.feather")
-                os.makedirs(os.path.dirname(path), exist_ok=True)
-                feather.write_feather(table, path)
+                write_av2_sweep(os.path.join(d, "sensors", "lidar", f"{t}.feather"), pts)
             _write_av2_map(
                 os.path.join(d, "map", f"log_map_archive_{log_id}____{city}_city_00000.json"),
                 (ox, oy),
@@ -446,6 +456,22 @@ def write_argoverse(root: str, logs: dict | None = None, origins: dict | None = 
 def _feather(path: str, columns: dict) -> None:
     os.makedirs(os.path.dirname(path), exist_ok=True)
     feather.write_feather(pa.table(columns), path)
+
+
+def write_av2_sweep(path: str, pts: np.ndarray) -> None:
+    """One AV2 LiDAR sweep feather (float16 x, y, z; uint8 intensity) of ``(P, 4)`` points."""
+    table = pa.table(
+        {
+            "x": pa.array(pts[:, 0].astype(np.float16)),
+            "y": pa.array(pts[:, 1].astype(np.float16)),
+            "z": pa.array(pts[:, 2].astype(np.float16)),
+            "intensity": pa.array(pts[:, 3].astype(np.uint8)),
+            "laser_number": pa.array(np.zeros(len(pts), np.uint8)),
+            "offset_ns": pa.array(np.zeros(len(pts), np.uint32)),
+        }
+    )
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    feather.write_feather(table, path)
 
 
 def _write_av2_map(path: str, origin=(0.0, 0.0)) -> None:

@@ -27,7 +27,7 @@ import pyarrow as pa
 import pyarrow.feather as feather
 from PIL import Image
 
-from fixtures_real import CAM_FORWARD, ROAD_Y, quat_wxyz, rot_z
+from fixtures_real import CAM_FORWARD, ROAD_Y, quat_wxyz, rot_z, write_av2_sweep
 from seglocnet_jax.data.real_common import radial_distort
 from seglocnet_jax.data.schema import EGO_HEIGHT_M
 
@@ -179,19 +179,7 @@ def write_av2_log(
     _feather(os.path.join(d, "calibration", "intrinsics.feather"), intr)
     pts = facts["lidar"]
     for ts in sweep_t:
-        table = pa.table(
-            {
-                "x": pa.array(pts[:, 0].astype(np.float16)),
-                "y": pa.array(pts[:, 1].astype(np.float16)),
-                "z": pa.array(pts[:, 2].astype(np.float16)),
-                "intensity": pa.array(pts[:, 3].astype(np.uint8)),
-                "laser_number": pa.array(np.zeros(len(pts), np.uint8)),
-                "offset_ns": pa.array(np.zeros(len(pts), np.uint32)),
-            }
-        )
-        path = os.path.join(d, "sensors", "lidar", f"{ts}.feather")
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        feather.write_feather(table, path)
+        write_av2_sweep(os.path.join(d, "sensors", "lidar", f"{ts}.feather"), pts)
     ring = [(x - 40, ROAD_Y - 4), (x + 40, ROAD_Y - 4), (x + 40, ROAD_Y + 4), (x - 40, ROAD_Y + 4)]
     area = {"id": 1, "area_boundary": [{"x": a, "y": b, "z": 0.0} for a, b in ring]}
     path = os.path.join(d, "map", f"log_map_archive_{log_id}____{city}_city_00000.json")

@@ -8,6 +8,7 @@ import numpy as np
 import shapely
 
 from data_synth import Factory, GridSource
+from fixtures_real import OsmXml
 from seglocnet_jax import maps
 
 HD_HALF_WIDTH = 3.0  # m: the fake world's carriageway (6 m) is narrower than SD's 10 m buffer
@@ -19,40 +20,23 @@ def write_grid_osm(
     """An OSM XML town of ``size`` metres: residential streets every ``spacing`` metres (each
     street one way through all its crossings) and a 40 m square building in every block."""
     proj = maps.Projection.tmerc(lat0, lon0)
-    lines = ['<?xml version="1.0" encoding="UTF-8"?>', '<osm version="0.6" generator="test">']
-    ways: list[tuple[list[int], dict]] = []
-    node_id = 0
+    osm = OsmXml("test")
 
     def add_nodes(points) -> list[int]:
-        nonlocal node_id
         xy = np.asarray(points, np.float64) - size / 2
-        lon, lat = proj.to_lonlat(xy[:, 0], xy[:, 1])
-        ids = []
-        for lo, la in zip(lon, lat, strict=True):
-            node_id += 1
-            lines.append(f' <node id="{node_id}" version="1" lat="{la:.9f}" lon="{lo:.9f}"/>')
-            ids.append(node_id)
-        return ids
+        return osm.nodes(*proj.to_lonlat(xy[:, 0], xy[:, 1]))
 
     ticks = np.arange(0.0, size + 1e-6, spacing)
     for t in ticks:
-        ways.append((add_nodes([(0.0, t), (size, t)]), {"highway": "residential"}))
-        ways.append((add_nodes([(t, 0.0), (t, size)]), {"highway": "residential"}))
+        osm.way(add_nodes([(0.0, t), (size, t)]), highway="residential")
+        osm.way(add_nodes([(t, 0.0), (t, size)]), highway="residential")
     for x in ticks[:-1] + spacing / 2:
         for y in ticks[:-1] + spacing / 2:
             ids = add_nodes(
                 [(x - 20, y - 20), (x + 20, y - 20), (x + 20, y + 20), (x - 20, y + 20)]
             )
-            ways.append((ids + ids[:1], {"building": "yes"}))
-    for i, (ids, tags) in enumerate(ways):
-        lines.append(f' <way id="{1000 + i}" version="1">')
-        lines += [f'  <nd ref="{n}"/>' for n in ids]
-        lines += [f'  <tag k="{k}" v="{v}"/>' for k, v in tags.items()]
-        lines.append(" </way>")
-    lines.append("</osm>")
-    with open(path, "w") as f:
-        f.write("\n".join(lines) + "\n")
-    return str(path)
+            osm.way(ids + ids[:1], building="yes")
+    return osm.write(path)
 
 
 def drivable_of(city) -> shapely.Geometry:
