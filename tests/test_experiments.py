@@ -42,9 +42,7 @@ def test_experiment_composes_and_builds(name):
     assert (exp.dataset is not None) == (name in REAL)
     if name in REAL:
         assert exp.dataset["source"] == REAL[name]
-    assert exp.variant.kind == (
-        "sd" if name.endswith("_sd") or name == "sim_generalization" else "hd"
-    )
+    assert exp.map.kind == ("sd" if name.endswith("_sd") or name == "sim_generalization" else "hd")
 
 
 @pytest.mark.parametrize("name", sorted(REAL))
@@ -89,7 +87,7 @@ def test_nuscenes_experiment_converts_then_reuses(tmp_path):
     ]
     exp = build_experiment(_compose(overrides))
     ddir = prepare_dataset(exp)  # converts sensors, the listed HD variant and the run's SD one
-    batch = next(iter(make_loader(ddir, "val", exp.variant.name, 1, 0, train=False)))
+    batch = next(iter(make_loader(ddir, "val", exp.map.name, 1, 0, train=False)))
     assert batch["tile"].shape[1:] == (2, 256, 256)
     assert batch["images"].shape[2:4] == (16, 32)
     shutil.rmtree(root)  # converted: the raw data is no longer needed
@@ -98,6 +96,6 @@ def test_nuscenes_experiment_converts_then_reuses(tmp_path):
 
 def test_model_classes_follow_map_channels():
     exp = build_experiment(_compose(["map.channels=[road]"]))
-    assert exp.model.num_classes == 1 and exp.variant.channels == ("road",)
+    assert exp.model.num_classes == 1 and exp.map.channels == ("road",)
     with pytest.raises(Exception, match="model.num_classes=2 but map.channels"):
         build_experiment(_compose(["map.channels=[building]", "model.num_classes=2"]))

@@ -125,10 +125,6 @@ class ExperimentConfig:
     eval: EvalConfig
     dataset: dict | None = None
 
-    @property
-    def variant(self) -> maps.MapConfig:  # the run's map variant
-        return self.map
-
 
 def build_experiment(tree: dict) -> ExperimentConfig:
     """``tree``: the resolved Hydra config as a dict (sections :data:`SECTIONS`)."""
