@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 
 from seglocnet_jax.app.schema import ExperimentConfig
+from seglocnet_jax.data import manifest as mf
 from seglocnet_jax.data import prepare as prepare_lib
 
 
@@ -23,8 +24,10 @@ def _prepare_real(cfg: ExperimentConfig) -> str:
 
     reader_cls, reader_cfg, convert_cfg = real_convert.parse_tree(cfg.dataset)
     dataset_dir = os.path.join(convert_cfg.root, convert_cfg.name)
-    if _converted(dataset_dir, cfg.map):
-        return dataset_dir
+    if os.path.isfile(mf.manifest_path(dataset_dir)):
+        mf.read_manifest(dataset_dir)  # an old or edited manifest is an error naming it
+        if prepare_lib.dataset_ready(dataset_dir, [cfg.map]):
+            return dataset_dir
     dataroot = reader_cfg.dataroot
     if not os.path.isdir(dataroot):
         raise FileNotFoundError(
@@ -35,19 +38,3 @@ def _prepare_real(cfg: ExperimentConfig) -> str:
         )
     dataset_dir, _ = real_convert.convert_for_training(reader_cls(reader_cfg), convert_cfg, cfg.map)
     return dataset_dir
-
-
-def _converted(dataset_dir: str, variant) -> bool:
-    """Whether ``dataset_dir`` holds a complete conversion with ``variant`` for every city."""
-    from seglocnet_jax.data import manifest as mf
-    from seglocnet_jax.data.variants import variant_path
-
-    if not os.path.isfile(mf.manifest_path(dataset_dir)):
-        return False
-    man = mf.read_manifest(dataset_dir)
-    if not man.get("complete") or not prepare_lib.all_shards_exist(man, dataset_dir):
-        return False
-    if variant.name not in man["map_variants"]:
-        return False
-    cities = {c for sp in man["splits"].values() for c in sp["cities"]}
-    return all(os.path.exists(variant_path(dataset_dir, variant.name, c)) for c in cities)

@@ -299,14 +299,19 @@ def prepare(
 
 
 def _nothing_to_write(cfg: PrepareConfig, dataset_dir: str, variants) -> bool:
-    """Whether the sensors are complete and every wanted map variant is stored (so that
-    :func:`_prepare` only reads and checks)."""
+    """Whether :func:`_prepare` would only read and check (see :func:`dataset_ready`)."""
+    if variants is None:
+        variants = [MapConfig(**spec) for spec in cfg.map_variants]
+    return dataset_ready(dataset_dir, variants)
+
+
+def dataset_ready(dataset_dir: str, variants) -> bool:
+    """Whether ``dataset_dir`` holds complete sensor shards and every map variant of
+    ``variants`` (``MapConfig``s) for every city (simulated or converted alike)."""
     from seglocnet_jax.data.variants import variant_path
 
     try:
         man = mf.read_manifest(dataset_dir)
-        if variants is None:
-            variants = [MapConfig(**spec) for spec in cfg.map_variants]
         keys = {c for s in man["splits"].values() for c in s["cities"]}
         return (
             man["complete"]
