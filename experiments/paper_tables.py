@@ -11,6 +11,13 @@ is the app's default one, so the main job (``python -m seglocnet_jax.train``) is
 A job whose ``results.json`` exists is not rerun; an interrupted one resumes from its checkpoint.
 ``--extra`` appends overrides to every job (the tests run the set on a tiny dataset that way;
 ``--root`` then gives the jobs their own directories).
+
+The results store: when a job finishes (or a finished one is found), ``run`` copies its
+``results.json`` with the command, the run directory and the git commit of the code that ran it
+into ``experiments/results/<budget>/<job>.json`` (``--store``), which is committed; ``collect``
+reads only the store, so the tables survive the run directories (which are not committed) and a
+row measured in another checkout (``cd <clone> && python <this repo>/experiments/paper_tables.py
+run ...``) lands here with that checkout's commit.
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ import shlex
 import subprocess
 import sys
 import time
+from datetime import UTC, datetime
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 
@@ -111,14 +119,68 @@ def shown(cmd: list[str]) -> str:
     return " ".join(["python", *[shlex.quote(c) for c in cmd[1:]]])
 
 
-def run(jobs, budget: str, extra=(), root=None) -> int:
-    """Runs the jobs in order (each its own process, log in ``<run dir>/paper_job.log``);
-    returns the number that failed. Finished jobs are skipped."""
+def store_dir(budget: str) -> str:
+    """The committed results store of a budget."""
+    return os.path.join(REPO, "experiments", "results", budget)
+
+
+def _commit(cwd: str) -> str:
+    """``git rev-parse HEAD`` of the checkout the jobs run in, ``+dirty`` if tracked files
+    differ from it; ``unknown`` outside a git checkout."""
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=cwd,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("+dirty" if dirty else "")
+
+
+def store_result(job: Job, budget: str, rdir: str, store: str) -> str:
+    """Copies ``<rdir>/results.json`` into ``<store>/<job>.json`` (atomic) with the job's command,
+    run directory and commit; an entry holding the same results is left as it is."""
+    with open(os.path.join(rdir, "results.json")) as f:
+        res = json.load(f)
+    path = os.path.join(store, f"{job.name}.json")
+    if os.path.exists(path):
+        with open(path) as f:
+            old = json.load(f)
+        if old.get("results") == res:
+            return path
+    entry = {
+        "job": job.name,
+        "budget": budget,
+        "command": shown(command(job, budget)),
+        "run_dir": os.path.abspath(rdir),
+        "commit": _commit(os.getcwd()),
+        "stored_at": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "results": res,
+    }
+    from seglocnet_jax import fileio
+
+    os.makedirs(store, exist_ok=True)
+    fileio.write_json_atomic(path, entry, indent=1)
+    return path
+
+
+def run(jobs, budget: str, extra=(), root=None, store: str | None = None) -> int:
+    """Runs the jobs in order (each its own process, log in ``<run dir>/paper_job.log``) and
+    stores each finished one (:func:`store_result`); returns the number that failed. Finished
+    jobs are skipped (and stored)."""
+    store = store or store_dir(budget)
     failed = 0
     for i, job in enumerate(jobs):
         rdir = run_dir(job, budget, extra, root)
         if os.path.exists(os.path.join(rdir, "results.json")):
             print(f"[paper] {i + 1}/{len(jobs)} {job.name}: done ({rdir})", flush=True)
+            print(f"[paper] stored {store_result(job, budget, rdir, store)}", flush=True)
             continue
         cmd = command(job, budget, extra, root)
         print(f"[paper] {i + 1}/{len(jobs)} {job.name}: {shown(cmd)}", flush=True)
@@ -128,6 +190,8 @@ def run(jobs, budget: str, extra=(), root=None) -> int:
             rc = subprocess.call(cmd, cwd=os.getcwd(), stdout=log, stderr=subprocess.STDOUT)
         status = "ok" if rc == 0 else f"FAILED (exit {rc}, log {rdir}/paper_job.log)"
         print(f"[paper] {job.name}: {status} in {time.time() - t0:.0f} s", flush=True)
+        if rc == 0:
+            print(f"[paper] stored {store_result(job, budget, rdir, store)}", flush=True)
         failed += rc != 0
     return failed
 
@@ -135,17 +199,28 @@ def run(jobs, budget: str, extra=(), root=None) -> int:
 # --------------------------------------------------------------------------- collecting
 
 
-def load(jobs, budget, extra=(), root=None) -> dict:
-    """``{job name: {"results", "dir", "command"}}`` (results None when missing)."""
+def load(jobs, budget: str, store: str | None = None) -> dict:
+    """``{job name: {"results", "dir", "command", "commit"}}`` from the store (results None
+    when the job has no entry). An entry of another job or budget is an error naming it."""
+    store = store or store_dir(budget)
     out = {}
     for job in jobs:
-        rdir = run_dir(job, budget, extra, root)
-        path = os.path.join(rdir, "results.json")
-        res = None
+        path = os.path.join(store, f"{job.name}.json")
+        entry = {}
         if os.path.exists(path):
             with open(path) as f:
-                res = json.load(f)
-        out[job.name] = {"results": res, "dir": rdir, "command": shown(command(job, budget))}
+                entry = json.load(f)
+            if entry.get("job") != job.name or entry.get("budget") != budget:
+                raise ValueError(
+                    f"{path}: holds job {entry.get('job')!r} budget {entry.get('budget')!r}, "
+                    f"expected job {job.name!r} budget {budget!r}"
+                )
+        out[job.name] = {
+            "results": entry.get("results"),
+            "dir": entry.get("run_dir"),
+            "command": entry.get("command", shown(command(job, budget))),
+            "commit": entry.get("commit"),
+        }
     return out
 
 
@@ -176,6 +251,8 @@ def _row_table(title, rows, data, split, paper=None, paper_label="paper"):
         vals = [_cell(_num(d, split, c), 2 if c in ("APE", "AOE") else 1) for c in COLS]
         ious = [_cell(_num(d, split, c)) for c in IOU]
         cmd = f"`{d['command']}`"
+        if d.get("commit"):
+            cmd += f" @{d['commit'][:7]}{'+dirty' if d['commit'].endswith('+dirty') else ''}"
         if d["results"] is None:
             vals, ious, cmd = ["not run"] + ["–"] * (len(COLS) - 1), ["–"] * 2, cmd
         lines.append(f"| {label} | " + " | ".join([*vals, *ious, _wall(d), cmd]) + " |")
@@ -382,10 +459,9 @@ def collect(data, budget: str, out_md: str, fig_dir: str, note: str = "") -> str
     if missing:
         parts += ["", f"Not yet measured: {', '.join(missing)} (run the set again to fill them)."]
     text = "\n".join(parts) + "\n"
-    tmp = out_md + ".tmp"
-    with open(tmp, "w") as f:
-        f.write(text)
-    os.replace(tmp, out_md)
+    from seglocnet_jax import fileio
+
+    fileio.write_text_atomic(out_md, text)
     return text
 
 
@@ -399,6 +475,11 @@ def main(argv=None) -> int:
         "--root",
         default=None,
         help="run directories <root>/<job> (default: the app's own run directories)",
+    )
+    ap.add_argument(
+        "--store",
+        default=None,
+        help="results store (default: experiments/results/<budget>, committed)",
     )
     ap.add_argument("--out", default=os.path.join(REPO, "docs", "results.md"))
     ap.add_argument("--figures", default=os.path.join(REPO, "docs"))
@@ -415,10 +496,10 @@ def main(argv=None) -> int:
         ap.error(f"unknown job(s) {unknown}; jobs: {list(BY_NAME)}")
     jobs = [BY_NAME[n] for n in names]
     if args.action == "run":
-        failed = run(jobs, budget, args.extra, args.root)
+        failed = run(jobs, budget, args.extra, args.root, args.store)
         print(f"[paper] {len(jobs) - failed}/{len(jobs)} jobs finished", flush=True)
         return 1 if failed else 0
-    data = load(JOBS, budget, args.extra, args.root)
+    data = load(JOBS, budget, args.store)
     print(collect(data, budget, args.out, args.figures, args.note))
     return 0
 

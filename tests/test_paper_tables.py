@@ -1,9 +1,14 @@
 """experiments/paper_tables.py on a tiny set (2 jobs, a few steps): runs each job through the
 apps, skips finished jobs on a rerun, and collects docs-style tables with figures."""
 
+import importlib.util
+import json
 import os
+import shutil
 import subprocess
 import sys
+
+import pytest
 
 SCRIPT = os.path.join(os.path.dirname(__file__), "..", "experiments", "paper_tables.py")
 
@@ -45,12 +50,26 @@ def _script(*args, cwd):
 
 def test_run_skip_and_collect(tmp_path):
     root, out, figs = tmp_path / "runs", tmp_path / "results.md", tmp_path / "figs"
-    common = ["budget=cpu", "--root", str(root), "--extra", *_tiny(tmp_path / "data")]
-    proc = _script("run", *common[:3], "--only", "hd,gt_hd", *common[3:], cwd=tmp_path)
+    store = tmp_path / "store"
+    common = [
+        "budget=cpu",
+        "--root",
+        str(root),
+        "--store",
+        str(store),
+        "--extra",
+        *_tiny(tmp_path / "data"),
+    ]
+    proc = _script("run", *common[:5], "--only", "hd,gt_hd", *common[5:], cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert (root / "hd" / "results.json").exists() and (root / "gt_hd" / "results.json").exists()
-    again = _script("run", *common[:3], "--only", "hd", *common[3:], cwd=tmp_path)
+    again = _script("run", *common[:5], "--only", "hd", *common[5:], cwd=tmp_path)
     assert again.returncode == 0 and "hd: done" in again.stdout  # finished: not rerun
+    entry = json.loads((store / "hd.json").read_text())
+    assert entry["results"] == json.loads((root / "hd" / "results.json").read_text())
+    assert entry["job"] == "hd" and entry["budget"] == "cpu" and entry["commit"] == "unknown"
+    assert entry["command"] == "python -m seglocnet_jax.train +budget=cpu"
+    shutil.rmtree(root)  # collect reads the committed store only, not the run directories
 
     proc = _script("collect", *common, "--out", str(out), "--figures", str(figs), cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -66,6 +85,20 @@ def test_run_skip_and_collect(tmp_path):
     )
     gt = rows["GT segmentation, HD"].split("|")
     assert float(gt[2]) >= 50.0 and float(gt[6]) >= 50.0  # R@1m, R@1° of GT labels (K = 64)
+    assert "@unknown" in rows["SegLocNet-HD"]  # the commit of the code that ran the row
     assert "| I: HD > SD > NM at R@1m (test) | – | not all rows measured |" in text
     for key in ("i", "iii", "iv", "v", "modality", "seeds"):
         assert (figs / f"results_{key}.png").stat().st_size > 1000
+
+
+def test_store_entry_of_another_job_is_refused(tmp_path):
+    spec = importlib.util.spec_from_file_location("paper_tables", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("paper_tables", mod)  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    (tmp_path / "sd.json").write_text(json.dumps({"job": "hd", "budget": "cpu", "results": {}}))
+    with pytest.raises(
+        ValueError, match=r"sd\.json: holds job 'hd' budget 'cpu', expected job 'sd'"
+    ):
+        mod.load(mod.JOBS, "cpu", str(tmp_path))
+    assert mod.load(mod.JOBS[:1], "cpu", str(tmp_path))["hd"]["results"] is None
