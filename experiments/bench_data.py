@@ -62,6 +62,9 @@ class SynthSource:
                 {
                     "sample_id": str(i),
                     "city": self.city,
+                    "sequence_id": f"{self.city}-{seed}",
+                    "frame_index": np.int64(i),
+                    "timestamp": np.float64(0.0),
                     "pose": np.asarray(pose, np.float64),
                     "images": images,
                     "intrinsics": np.tile(np.eye(3, dtype=np.float32), (self.cams, 1, 1)),

@@ -3,11 +3,14 @@ driving on a square street grid, and a city raster with the maps API (tile / cut
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 
 from seglocnet_jax import geometry
 from seglocnet_jax.data import prepare as pp
 from seglocnet_jax.data import splits
+from seglocnet_jax.sim import trajectory
 
 
 def random_sample(
@@ -18,17 +21,23 @@ def random_sample(
     hw=(8, 12),
     num_points: int | None = None,
     pose=None,
+    sequence: tuple[str, int, float] | None = None,
 ) -> dict:
-    """A valid ``SAMPLE_KEYS`` dict with random content (images, intrinsics, LiDAR)."""
+    """A valid ``SAMPLE_KEYS`` dict with random content (images, intrinsics, LiDAR);
+    ``sequence`` = ``(sequence_id, frame_index, timestamp)`` (default: its own sequence)."""
     n_pts = int(rng.integers(20, 60)) if num_points is None else num_points
     intr = np.tile(np.array([[10, 0, 6], [0, 10, 4], [0, 0, 1]], np.float32), (num_cams, 1, 1))
     cam = np.tile(np.eye(4, dtype=np.float32), (num_cams, 1, 1))
     cam[:, 0, 3] = rng.normal(size=num_cams).astype(np.float32)
     if pose is None:
         pose = np.array([*rng.uniform(0, 500, 2), rng.uniform(-np.pi, np.pi)], np.float64)
+    seq_id, index, stamp = sequence or (f"seq-{sample_id}", 0, 0.0)
     return {
         "sample_id": sample_id,
         "city": city,
+        "sequence_id": seq_id,
+        "frame_index": np.int64(index),
+        "timestamp": np.float64(stamp),
         "pose": np.asarray(pose, np.float64),
         "images": rng.integers(0, 256, (num_cams, *hw, 3), dtype=np.uint8),
         "intrinsics": intr,
@@ -48,6 +57,7 @@ class GridSource:
         self.size = size
         self.calls = 0
         self.fail_after = fail_after
+        self._world = None
 
     def drive(self, rng: np.random.Generator, num_frames: int) -> np.ndarray:
         street = rng.integers(0, int(self.size // 100) + 1, num_frames) * 100.0
@@ -57,6 +67,16 @@ class GridSource:
         y = np.where(east, street, along)
         yaw = np.where(east, 0.0, np.pi / 2) + np.where(rng.random(num_frames) < 0.5, 0, np.pi)
         return np.stack([x, y, geometry.wrap_angle(yaw)], axis=1)
+
+    def route(self, rng: np.random.Generator, length_m: float, spacing_m: float):
+        """A continuous drive on the grid's two-way streets (``sim.trajectory.route``)."""
+        if self._world is None:
+            ticks = np.arange(0.0, self.size + 1e-6, 100.0)
+            lines = [np.column_stack([ticks, np.full_like(ticks, t)]) for t in ticks]
+            lines += [line[:, ::-1] for line in lines]  # north-south streets
+            roads = [SimpleNamespace(centerline=c, width=8.0, lanes=2, oneway=False) for c in lines]
+            self._world = SimpleNamespace(name=self.city, roads=roads, graph=None)
+        return trajectory.route(self._world, rng, length_m, spacing_m)
 
     def render(self, poses: np.ndarray, seed: int) -> list[dict]:
         if self.fail_after is not None and self.calls >= self.fail_after:
@@ -108,6 +128,8 @@ def small_config(root, **kw) -> pp.PrepareConfig:
         pool_factor=2.0,
         max_rounds=10,
         split=splits.SplitConfig(stripe_width=25.0),
+        num_drives=0,  # drive splits are opt-in here (tests of drives turn them on, tiny)
+        num_val_drives=0,
     )
     return pp.PrepareConfig(**(base | kw))
 

@@ -29,6 +29,7 @@ def _tree(data_root, **train):
             "name": "tiny",
             "root": data_root,
             "test_city": None,
+            "num_val_drives": 0,  # no drive splits: not rendered
             "num_train": 16,
             "num_val": 8,
             "num_test": 8,
@@ -50,7 +51,13 @@ def _tree(data_root, **train):
             "checkpoint": {"every_steps": 2},
             **train,
         },
-        "eval": {"splits": ["test"], "num_figures": 1, "batch_size": 4, "max_batches": 1},
+        "eval": {
+            "mode": "single",  # no drive splits here: tests/test_sequential.py tracks drives
+            "splits": ["test"],
+            "num_figures": 1,
+            "batch_size": 4,
+            "max_batches": 1,
+        },
     }
 
 
@@ -87,6 +94,7 @@ def test_train_evaluate_gt_and_figures(data_root, tmp_path, capsys):
             **_tree(data_root),
             "eval": {
                 "bev_source": "gt",
+                "mode": "single",
                 "splits": ["test", "val"],
                 "num_figures": 1,
                 "batch_size": 4,

@@ -115,12 +115,22 @@ def test_unknown_key_stops_train_and_evaluate(app, override, key):
         ("eval.bev_source=gt|model.variant=nm", "eval.bev_source"),
         ("sim.sensors.max_range=300", "sim.sensors.max_range"),
         ("sim.spacing_m=0", "sim.spacing_m"),
+        ("data.num_val_drives=-1", "data.num_val_drives"),
+        ("data.min_val_drive_m=5000", "data.min_val_drive_m"),
     ],
 )
 def test_bad_values_fail_before_any_work(override, key):
     with pytest.raises((ConfigError, ValueError)) as err:
         build_experiment(_compose(override.split("|")))
     assert key in str(err.value)
+
+
+def test_drive_splits_can_be_evaluated_when_the_dataset_has_them():
+    exp = build_experiment(_compose(["eval.splits=[drives,drives_val]"]))
+    assert list(exp.eval.splits) == ["drives", "drives_val"]
+    for override in ("data.num_drives=0", "data.test_city=null"):  # no drives split then
+        with pytest.raises(ConfigError, match=r"\['drives'\] not in the dataset's splits"):
+            build_experiment(_compose(["eval.splits=[drives,drives_val]", override]))
 
 
 def test_iou_metric_can_select_the_best_checkpoint():

@@ -21,6 +21,7 @@ from seglocnet_jax.data.loader import LoaderConfig, make_loader
 from seglocnet_jax.data.real_common import RealDataError
 
 OUT_HW = (12, 20)
+SEQ_KEYS = ("sequence_id", "frame_index", "timestamp")
 # A known OSM misalignment: OSM = TRUTH^-1(dataset), so the fit must return TRUTH.
 TRUTH = ra.Similarity(
     shift=(3.0, -2.0), rotation=math.radians(0.8), scale=1.0, centre=(200.0, 150.0)
@@ -144,6 +145,12 @@ def test_nuscenes_converts_to_records_and_rasters_the_loader_reads(tmp_path):
     assert len(batches) == 2 and batches[0]["images"].shape == (2, 6, *OUT_HW, 3)
     got = np.concatenate([b["pose"] for b in batches])[:3]  # file order; the 4th row is padding
     np.testing.assert_allclose(got, [f.pose for f in reader.frames("mini_val")], atol=1e-9)
+    # The sequence metadata survives the records: the scene, keyframe index, time (s).
+    val = reader.frames("mini_val")
+    rows = {k: np.concatenate([b[k] for b in batches])[:3] for k in SEQ_KEYS}
+    assert list(rows["sequence_id"]) == [f.sequence_id for f in val] == ["scene-0103"] * 3
+    assert rows["frame_index"].tolist() == [0, 1, 2] and rows["frame_index"].dtype == np.int64
+    assert rows["timestamp"].tolist() == [f.timestamp for f in val]
     for b in batches:
         assert np.all(b["bev_gt"][:, 0, 63:65, 63:65] == 1)
         assert np.abs(b["tile_center"] - b["pose"][:, :2]).max() <= 32.5

@@ -43,13 +43,24 @@ def test_official_nuscenes_splits_are_complete_and_disjoint():
 
 
 def test_nuscenes_frames_follow_scenes_and_land_on_the_drivable_area(nus):
-    reader, facts, _ = nus
+    reader, facts, root = nus
     frames = reader.frames("mini_train")
     assert [f.key for f in frames] == facts["scenes"]["scene-0061"]  # sample chain order
     drivable = reader.drivable("boston-seaport")
     for f in frames + reader.frames("mini_val"):
         np.testing.assert_allclose(f.pose, facts["poses"][f.key], atol=1e-9)
         assert f.city == "boston-seaport" and drivable.contains(Point(f.pose[:2]))
+    # Sequence metadata: the scene, the keyframe's index in it, the sample time in seconds.
+    samples = {r["token"]: r for r in json.load(open(os.path.join(root, "v1.0-mini/sample.json")))}
+    for scene in ("scene-0061", "scene-0103"):
+        mine = [f for f in frames + reader.frames("mini_val") if f.group == scene]
+        assert [f.sequence_id for f in mine] == [scene] * len(mine)
+        assert [f.frame_index for f in mine] == list(range(len(mine)))
+        assert [f.timestamp for f in mine] == [samples[f.key]["timestamp"] / 1e6 for f in mine]
+        assert np.all(np.diff([f.timestamp for f in mine]) > 0)
+    s = check_sample(reader.load(frames[1]))
+    assert (s["sequence_id"], s["frame_index"]) == ("scene-0061", 1)
+    assert s["frame_index"].dtype == np.int64 and s["timestamp"] == frames[1].timestamp
     # Polygon holes are kept: the plaza is drivable, its hole is not.
     assert drivable.contains(Point(200.0, 70.0)) and not drivable.contains(Point(200.0, 135.0))
     # Official lists are filtered to the scenes this version holds.
@@ -133,6 +144,13 @@ def test_argoverse_frames_cities_and_drivable_area(av2):
             f.pose, facts["poses"][f"{os.path.basename(log_id)}/{t}"], atol=1e-9
         )
         assert f.city == "MIA" and drivable.contains(Point(f.pose[:2]))
+        # Sequence metadata: the log, the frame's index among its kept sweeps, sweep time (s).
+        assert f.sequence_id == os.path.basename(log_id) == f.group
+        assert f.timestamp == int(t) / 1e9
+    for log_id in {f.group for f in frames}:
+        mine = [f for f in frames if f.group == log_id]
+        assert [f.frame_index for f in mine] == list(range(len(mine)))
+        assert np.allclose(np.diff([f.timestamp for f in mine]), 0.2)  # stride 2 x 100 ms
     assert not drivable.contains(Point(200.0, 135.0))
     # The city frame is UTM 17N minus the origin: the origin itself maps to (0, 0).
     proj = reader.projection("MIA")

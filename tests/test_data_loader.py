@@ -14,7 +14,8 @@ from seglocnet_jax.data import loader as ld
 from seglocnet_jax.data import manifest as mf
 from seglocnet_jax.data import prepare as pp
 from seglocnet_jax.data import records
-from seglocnet_jax.data.schema import BATCH_KEYS
+from seglocnet_jax.data.schema import BATCH_KEYS, BATCH_METADATA_KEYS
+from seglocnet_jax.training import step as step_lib
 
 B, P = 4, 48
 CFG = ld.LoaderConfig(max_points=P, num_threads=0, prefetch=0)
@@ -46,9 +47,12 @@ def test_batches_follow_the_schema(dataset):
     raster = dataset[1]["helsinki"]
     batch = next(iter(_loader(dataset)))
     dims = {"B": B, "P": P, "N": 2, "H": 8, "W": 12, "C": 2}
+    assert set(batch) == set(BATCH_KEYS)
     for key, (dtype, shape) in BATCH_KEYS.items():
         want = tuple(dims.get(s, s) for s in shape)
-        assert batch[key].dtype == np.dtype(dtype) and batch[key].shape == want, key
+        kind_ok = batch[key].dtype.kind == "U" if dtype == "str" else batch[key].dtype == dtype
+        assert kind_ok and batch[key].shape == want, key
+    assert set(BATCH_METADATA_KEYS) == set(step_lib.HOST_ONLY_KEYS)  # kept off the devices
     for i in range(B):
         pose, centre = batch["pose"][i], batch["tile_center"][i]
         np.testing.assert_allclose(

@@ -18,6 +18,7 @@ from seglocnet_jax.data import manifest as mf
 from seglocnet_jax.data import records
 from seglocnet_jax.data.schema import SchemaError
 
+SEQUENCE_KEYS = ("sequence_id", "frame_index", "timestamp")
 STEP = records.LIDAR_STEP
 
 
@@ -179,21 +180,27 @@ def test_source_jpegs_of_the_stored_size_are_passed_through_bit_for_bit():
         records.with_source_jpegs(decoded, files[:1])
 
 
-def test_version_1_records_and_datasets_are_refused_with_the_remedy(tmp_path):
+@pytest.mark.parametrize("version", [1, 2])
+def test_old_records_and_datasets_are_refused_with_the_remedy(tmp_path, version):
+    """Version 1 (float32 LiDAR) and version 2 (no sequence metadata) records and datasets."""
     rng = np.random.default_rng(6)
     rec = records.encode_sample(_with_prior(random_sample(rng)))
     payload = msgpack.unpackb(rec[len(records.MAGIC) :], raw=False)
-    old = records.MAGIC + msgpack.packb(dict(payload, v=1), use_bin_type=True)
-    with pytest.raises(records.RecordError, match=r"shard-2 record 5: record version 1.*re-run"):
+    fields = {k: v for k, v in payload["f"].items() if k not in SEQUENCE_KEYS}
+    old = records.MAGIC + msgpack.packb(dict(payload, v=version, f=fields), use_bin_type=True)
+    with pytest.raises(
+        records.RecordError, match=rf"shard-2 record 5: record version {version}.*re-run"
+    ):
         records.decode_sample(old, "shard-2 record 5")
     ddir = tmp_path / "sim_quick_cpu"
     ddir.mkdir()
-    man = dict(mf.new_manifest({"seed": 0}, {}), record_version=1, complete=True)
+    man = dict(mf.new_manifest({"seed": 0}, {}), record_version=version, complete=True)
     (ddir / mf.MANIFEST_NAME).write_text(json.dumps(man))
     with pytest.raises(mf.ManifestError) as err:
         mf.read_manifest(ddir)
     msg = str(err.value)
-    assert "record_version 1, this code reads 2" in msg and "Re-run the data preparation" in msg
+    assert f"record_version {version}, this code reads 3" in msg
+    assert "Re-run the data preparation" in msg and "sequence metadata" in msg
     assert f"delete {ddir}" in msg and mf.manifest_path(ddir) in msg
 
 

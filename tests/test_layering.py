@@ -26,9 +26,19 @@ ALLOWED = {
     "data": {"geometry", "maps", "sim", "solver"} | UTIL,
     "model": {"geometry", "solver", "losses"} | UTIL,
     "viz": {"geometry", "maps"},
-    "evaluation": {"geometry", "solver", "metrics", "model", "viz"},
+    "evaluation": {"geometry", "solver", "metrics", "model", "viz", "tracking"},
     "training": {"geometry", "model"} | UTIL,
     "tracking": {"geometry", "solver"},
+    "sequential": {
+        "geometry",
+        "solver",
+        "metrics",
+        "viz",
+        "maps",
+        "data",
+        "evaluation",
+        "tracking",
+    },
     "app": {
         "geometry",
         "maps",
@@ -42,6 +52,7 @@ ALLOWED = {
         "evaluation",
         "training",
         "tracking",
+        "sequential",
     }
     | UTIL,
 }

@@ -18,6 +18,7 @@ def _tiny(data_root):
         f"data.root={data_root}",
         "data.name=tiny",
         "data.test_city=null",
+        "data.num_val_drives=0",  # no drive splits: not rendered
         "data.num_train=16",
         "data.num_val=8",
         "data.num_test=8",
@@ -35,6 +36,7 @@ def _tiny(data_root):
         "train.log_every=1",
         "train.optim.warmup_steps=1",
         "train.checkpoint.every_steps=2",
+        "eval.mode=single",  # no drive splits: not tracked
         "eval.splits=[test]",
         "eval.num_figures=0",
         "eval.batch_size=4",

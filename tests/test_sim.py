@@ -4,6 +4,7 @@ frames, and trajectories stay on the road respecting one-way streets."""
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -21,7 +22,14 @@ from seglocnet_jax.sim import (
 )
 from seglocnet_jax.sim import render as rn
 from seglocnet_jax.sim.classes import Thing
-from seglocnet_jax.sim.trajectory import lane_poses, sample_poses
+from seglocnet_jax.sim.trajectory import (
+    NOMINAL_SPEED_MPS,
+    build_graph,
+    drive_routes,
+    lane_poses,
+    route,
+    sample_poses,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -231,6 +239,66 @@ def test_trajectories_stay_on_road_and_respect_oneway(world):
     cont = np.abs(dist - 3.0) < 0.5
     heading = np.arctan2(step[cont, 1], step[cont, 0])
     assert np.median(np.abs(np.angle(np.exp(1j * (heading - poses[:-1][cont, 2]))))) < 0.1
+
+
+def _angle(a):
+    return np.abs(np.angle(np.exp(1j * np.asarray(a))))
+
+
+def test_drive_routes_reports_each_frames_route_without_changing_the_poses(world):
+    traj = drive_routes(world, np.random.default_rng(5), 400, 3.0)
+    np.testing.assert_array_equal(traj.poses, drive(world, np.random.default_rng(5), 400, 3.0))
+    assert traj.route.dtype == traj.index.dtype == np.int64 and len(traj) == 400
+    same = np.diff(traj.route) == 0
+    assert np.all(np.diff(traj.route) >= 0) and len(np.unique(traj.route)) > 5
+    assert np.all(np.diff(traj.index)[same] == 1) and np.all(traj.index[1:][~same] == 0)
+    step = np.linalg.norm(np.diff(traj.poses[:, :2], axis=0), axis=1)
+    assert np.median(np.abs(step[same] - 3.0)) < 0.3  # a route's frames are 3 m apart
+    np.testing.assert_array_equal(traj.timestamps, traj.index * 3.0 / NOMINAL_SPEED_MPS)
+
+
+def test_routes_are_continuous_on_road_and_respect_oneway(world):
+    traj = route(world, np.random.default_rng(3), 1000.0, 5.0)
+    again = route(world, np.random.default_rng(3), 1000.0, 5.0)
+    np.testing.assert_array_equal(traj.poses, again.poses)  # deterministic for the rng
+    assert not np.array_equal(traj.poses, route(world, np.random.default_rng(4), 1000.0).poses)
+    assert len(traj) == 201 and traj.index.tolist() == list(range(201))
+    np.testing.assert_allclose(traj.timestamps, np.arange(201) * 5.0 / NOMINAL_SPEED_MPS)
+    poses = traj.poses
+    assert shapely.contains_xy(world.drivable, poses[:, 0], poses[:, 1]).all()
+    # No jumps: each frame is 5 m along the lane from the previous one (corners cut a little).
+    step = np.diff(poses[:, :2], axis=0)
+    dist = np.linalg.norm(step, axis=1)
+    assert dist.min() > 1.0 and dist.max() < 9.0 and np.median(np.abs(dist - 5.0)) < 0.1
+    # The yaw points along the travel, and the car never turns back (no dead end here).
+    heading = np.arctan2(step[:, 1], step[:, 0])
+    straight = np.abs(dist - 5.0) < 0.3
+    assert np.quantile(_angle(heading[straight] - poses[:-1][straight, 2]), 0.9) < 0.1
+    assert _angle(np.diff(poses[:, 2])).max() < 2.0
+    # A long drive takes the one-way street (y = 160, away from crossings) only eastward.
+    longer = route(world, np.random.default_rng(11), 5000.0, 5.0).poses
+    on_oneway = (np.abs(longer[:, 1] - 160) < 4) & (np.abs((longer[:, 0] + 40) % 80 - 40) > 10)
+    assert on_oneway.sum() > 5 and np.all(np.cos(longer[on_oneway, 2]) > 0.9)
+
+
+def test_routes_turn_back_at_a_dead_end_and_stop_when_stuck():
+    def stub(oneway):  # one 100 m road east from the origin, nothing else
+        road = SimpleNamespace(
+            centerline=np.array([[0.0, 0.0], [100.0, 0.0]]), width=8.0, lanes=2, oneway=oneway
+        )
+        return SimpleNamespace(name="stub", roads=[road], graph=None)
+
+    two_way = route(stub(False), np.random.default_rng(0), 450.0, 5.0)
+    poses = two_way.poses
+    assert len(poses) == 91 and np.all((poses[:, 0] >= 0) & (poses[:, 0] <= 100))
+    east = np.cos(poses[:, 2]) > 0.9
+    assert east.any() and (~east).any()  # it drove both ways: U-turns at the ends
+    assert np.all(poses[east, 1] < 0) and np.all(poses[~east, 1] > 0)  # right-hand lanes
+    dist = np.linalg.norm(np.diff(poses[:, :2], axis=0), axis=1)
+    assert dist.max() < 5.0 + 4.0 + 1.0  # a U-turn crosses the road (lane centres 4 m apart)
+    stuck = route(stub(True), np.random.default_rng(0), 450.0, 5.0)
+    assert 1 <= len(stuck) <= 21 and np.all(np.cos(stuck.poses[:, 2]) > 0.9)  # ends at x=100
+    assert len(build_graph(stub(True).roads).arcs) == 1
 
 
 def test_region_and_enumeration_apis(world):

@@ -1,7 +1,9 @@
 """The sequential filter: exact tracking with perfect inputs, dead reckoning with a flat
-likelihood, prediction signs in all four heading quadrants, convergence from a 30 m prior,
-a detected and recovered track loss, the credible-region test, the temperature fit, and the
-lattice convention shared with the solver's tiles. Small K keeps every test fast."""
+likelihood (also with the simulated odometry and the filter noise derived from it),
+prediction signs in all four heading quadrants, the narrowed kernels, convergence from a 30 m
+prior, a detected and recovered track loss, determinism, the credible-region test, the
+temperature fit, and the lattice convention shared with the solver's tiles. Small K keeps
+every test fast."""
 
 import math
 
@@ -171,6 +173,53 @@ def test_predict_moves_the_peak_by_the_motion(k0):
     np.testing.assert_allclose(float(np.asarray(moved.prob).sum()), 1.0, atol=1e-5)
 
 
+def test_narrow_kernels_equal_the_full_width_and_a_given_map_cell_changes_nothing(monkeypatch):
+    # predict drops Gaussian taps below 1e-7 of the central weight (here 1-2 of the 3 each
+    # side): the result equals the full-width kernels' to float32 rounding.
+    cfg = tr.TrackerConfig(num_rotations=K, sigma_xy=0.12, sigma_yaw=0.02)
+    rng = np.random.default_rng(4)
+    prob = rng.random((K, cfg.size, cfg.size)).astype(np.float32) ** 8
+    belief = tr.init_belief(cfg, (300.0, 200.0))._replace(prob=prob / prob.sum())
+    odo = np.array([2.6, -0.4, 0.3 * BIN])
+    assert motion._widths(odo, cfg) < (cfg.kernel_radius, cfg.kernel_radius)
+    narrow, info = tr.predict(belief, odo, cfg)
+    given, _ = tr.predict(belief, odo, cfg, map_cell=tr.estimate(belief, cfg)["map_cell"])
+    np.testing.assert_array_equal(given.prob, narrow.prob)
+    monkeypatch.setattr(motion, "_widths", lambda o, c: (c.kernel_radius, c.kernel_radius))
+    full, full_info = tr.predict(belief, odo, cfg)
+    np.testing.assert_array_equal(full.centre, narrow.centre)
+    np.testing.assert_allclose(narrow.prob, full.prob, rtol=0, atol=1e-6 * float(full.prob.max()))
+    assert abs(float(info["dropped"]) - float(full_info["dropped"])) < 1e-6
+
+
+def test_dead_reckoning_with_simulated_odometry_keeps_the_truth_credible():
+    # A flat likelihood: the belief is the prediction alone. With the filter noise derived
+    # from the odometry model (tracker_noise), the truth stays inside the belief's 99 %
+    # credible region while the simulated odometry drifts, and the mean follows the
+    # dead-reckoned track. The drive starts on a cell and a yaw bin, as the belief does; 64 yaw
+    # bins (16 would bend the mean's path by their width).
+    k_dim = 64
+    start = (250.0, 180.0, float(g.yaw_from_rotation(12, k_dim)))
+    poses = _drive(12, start=start, speed=5.0, yaw_rate=0.02)
+    odo_cfg = tr.OdometryConfig()
+    cfg = tr.TrackerConfig(
+        num_rotations=k_dim, lost_peak_mass=0.0, lost_entropy=1.0, **tr.tracker_noise(odo_cfg)
+    )
+    odo = tr.simulate(poses, np.arange(len(poses)) * 0.5, odo_cfg, seed=11)
+    dead = tr.compose(poses[0], odo)
+    belief = _delta(cfg, (12, cfg.centre, cfg.centre), xy=start[:2])
+    flat = np.zeros((k_dim, cfg.size, cfg.size), np.float32)
+    for i in range(1, len(poses)):
+        belief, _ = tr.predict(belief, odo[i], cfg)
+        belief, info = tr.update(belief, flat, cfg)
+        assert not bool(info["lost"])
+        gt = np.round(np.asarray(tr.world_to_cell(belief, poses[i], cfg))).astype(int)
+        gt[0] %= k_dim
+        assert bool(tr.in_credible_region(belief, gt, 0.99)), i
+        mean = np.asarray(info["estimate"]["mean_pose"], np.float64)
+        assert np.hypot(*(mean[:2] - dead[i, :2])) < 0.25, i  # half a cell
+
+
 def test_recentre_drops_and_reports_the_mass_that_leaves():
     belief = tr.init_belief(CFG, (300.0, 200.0))  # uniform over the window
     moved, dropped = tr.recentre(belief, (10, -3), CFG)
@@ -293,9 +342,9 @@ def test_a_drive_is_deterministic_for_a_seed():
 
 def test_kernels_compile_once_per_config():
     kernels = (
-        motion._motion_plan,
-        motion._rows_kernel,
+        motion._plan_rows_kernel,
         motion._cols_kernel,
+        motion._rotations_kernel,
         posterior._update_kernel,
         tr.estimate,
     )

@@ -13,14 +13,18 @@ it: periodic validation, best-checkpoint selection, the final tables, the figure
 
 Only decoded poses, peak scores and per-class IoU counts come back to the host; the likelihood
 map (score volume maximized over rotations) and BEV probabilities are returned only by the
-figure variant of the program, used for the batches that get figures.
+figure variant of the program, used for the batches that get figures, and the whole score volume
+``(B, K, 129, 129)`` only by the volume variant (left on the device: the sequential filter's
+likelihood and the temperature fit, :mod:`seglocnet_jax.sequential`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import os
+import typing
 from collections.abc import Callable, Iterable
 
 import jax
@@ -31,12 +35,47 @@ from tqdm import tqdm
 from seglocnet_jax import metrics, solver, viz
 from seglocnet_jax.model import api as model_api
 from seglocnet_jax.model.config import ModelConfig
+from seglocnet_jax.tracking import TrackerConfig
+from seglocnet_jax.tracking.odometry import OdometryConfig
 
 BEV_SOURCES = ("model", "gt")
+MODES = ("single", "sequential", "both")
 
-# How many times each localize program was traced (keyed by the builder's arguments): pinned by
-# a test so that validation rounds never recompile.
+# How many times each localize program was traced, keyed by the builder's arguments and the
+# program: ``figures`` False (poses), True (figure maps) or "volume" (the score volume). Pinned
+# by a test so that validation rounds never recompile.
 TRACE_COUNTS: dict[tuple, int] = {}
+
+# TrackerConfig fields that eval.tracker does not hold: the solver and geometry fix them.
+_TRACKER_DERIVED = ("num_rotations", "size", "resolution", "bev_size")
+# TrackerConfig's motion-noise fields: null in eval.tracker means "from eval.odometry".
+TRACKER_MOTION_FIELDS = ("sigma_xy", "sigma_xy_per_m", "sigma_yaw", "sigma_yaw_per_rad")
+
+
+def _tracker_section():
+    fields = []
+    hints = typing.get_type_hints(TrackerConfig)
+    for f in dataclasses.fields(TrackerConfig):
+        if f.name in _TRACKER_DERIVED:
+            continue
+        if f.name in TRACKER_MOTION_FIELDS:
+            fields.append((f.name, float | None, dataclasses.field(default=None)))
+        else:
+            fields.append((f.name, hints[f.name], dataclasses.field(default=f.default)))
+    cls = dataclasses.make_dataclass("TrackerSection", fields, frozen=True)
+    cls.__module__ = __name__
+    cls.__doc__ = (
+        "``eval.tracker``: the motion-noise and track-loss fields of "
+        ":class:`seglocnet_jax.tracking.TrackerConfig` (same names, meanings and defaults; one "
+        "source of defaults: built from its fields). The motion-noise fields "
+        f"({', '.join(TRACKER_MOTION_FIELDS)}) default to null: derived from ``eval.odometry`` "
+        "(the noise the filter's prediction must allow for); a number overrides. K, the window "
+        "size and the resolution follow the solver."
+    )
+    return cls
+
+
+TrackerSection = _tracker_section()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,10 +83,25 @@ class EvalConfig:
     """Attributes:
     bev_source: "model" (network output) or "gt" (GT-segmentation upper bound: the map cut out
       at the GT pose, as +-1 logits; needs no checkpoint).
-    splits: prepared splits evaluated at the end of training / by ``evaluate``.
-    num_figures: figures written per split (the first valid samples).
-    max_batches: cap on batches per split (None: the whole split).
-    batch_size: evaluation batch size.
+    splits: prepared splits evaluated at the end of training / by ``evaluate`` (single-frame).
+    num_figures: figures written per split (the first valid samples; sequential: the first
+      drives' maps, plus the error and calibration figures when > 0).
+    max_batches: cap on batches per split (None: the whole split); also caps the batches of
+      the temperature fit.
+    batch_size: evaluation batch size (sequential: drives localized in lockstep).
+    mode: "single" (``splits``, each frame from its own prior), "sequential" (whole drives
+      through the Bayes filter, :mod:`seglocnet_jax.sequential`) or "both".
+    sequential_splits: splits whose sequences are tracked (simulator: ``drives``; real data:
+      the scenes / logs of ``val`` or ``test``).
+    calibration_split: split whose drives give the calibration report and figure (tracked too
+      when not in ``sequential_splits``); None: none.
+    temperature: likelihood temperature of the filter (None: fitted on
+      ``temperature_split``).
+    temperature_split: split the temperature is fitted on (single frames, stored priors).
+    odometry: the vehicle's odometry noise (:class:`tracking.odometry.OdometryConfig`).
+    tracker: :data:`TrackerSection`, the filter's motion-noise and track-loss settings.
+    odometry_seed: seed of the simulated odometry noise (per drive: with its sequence id).
+    max_drives: sequences tracked per split (None: all).
     """
 
     bev_source: str = "model"
@@ -55,6 +109,15 @@ class EvalConfig:
     num_figures: int = 4
     max_batches: int | None = None
     batch_size: int = 8
+    mode: str = "both"
+    sequential_splits: tuple[str, ...] = ("drives",)
+    calibration_split: str | None = "drives_val"
+    temperature: float | None = None
+    temperature_split: str = "val"
+    odometry: OdometryConfig = OdometryConfig()
+    tracker: TrackerSection = TrackerSection()
+    odometry_seed: int = 0
+    max_drives: int | None = None
 
     def __post_init__(self):
         if self.bev_source not in BEV_SOURCES:
@@ -71,6 +134,37 @@ class EvalConfig:
             raise ValueError("eval.splits must name at least one split")
         if len(set(self.splits)) != len(self.splits):
             raise ValueError(f"eval.splits has duplicates: {list(self.splits)}")
+        if self.mode not in MODES:
+            raise ValueError(f"eval.mode must be one of {MODES}, got {self.mode!r}")
+        if self.mode != "single" and not self.sequential_splits:
+            raise ValueError(f"eval.mode={self.mode} needs eval.sequential_splits (got none)")
+        if len(set(self.sequential_splits)) != len(self.sequential_splits):
+            raise ValueError(
+                f"eval.sequential_splits has duplicates: {list(self.sequential_splits)}"
+            )
+        if self.temperature is not None and not (
+            math.isfinite(self.temperature) and self.temperature > 0
+        ):
+            raise ValueError(
+                f"eval.temperature must be > 0 or null (fit it), got {self.temperature}"
+            )
+        if self.max_drives is not None and self.max_drives < 1:
+            raise ValueError(f"eval.max_drives must be >= 1 or null, got {self.max_drives}")
+
+    @property
+    def single(self) -> bool:
+        """Whether the single-frame splits are evaluated."""
+        return self.mode in ("single", "both")
+
+    @property
+    def sequential(self) -> bool:
+        """Whether drives are tracked."""
+        return self.mode in ("sequential", "both")
+
+    def tracked_splits(self) -> tuple[str, ...]:
+        """The splits whose drives are tracked: ``sequential_splits`` and the calibration split."""
+        extra = (self.calibration_split,) if self.calibration_split else ()
+        return tuple(dict.fromkeys(self.sequential_splits + extra))
 
 
 def _match_inputs(params, batch, model_cfg: ModelConfig, bev_source: str):
@@ -87,14 +181,16 @@ def _match_inputs(params, batch, model_cfg: ModelConfig, bev_source: str):
 def _localize(params, batch, *, model_cfg, solver_cfg, bev_source, figures, key):
     TRACE_COUNTS[key] = TRACE_COUNTS.get(key, 0) + 1  # runs only while tracing
     template, tile, logits = _match_inputs(params, batch, model_cfg, bev_source)
-    out = solver.localize(template, tile, solver_cfg, return_volume=figures)
+    out = solver.localize(template, tile, solver_cfg, return_volume=bool(figures))
     result = {"pose_tile": out["pose_tile"], "score": out["score"]}  # (B, 3), (B,)
     labels = batch["bev_gt"].astype(jnp.float32)  # (B, C, 128, 128)
     if logits is not None:
         pred = (logits > 0).astype(jnp.float32)
         result["inter"] = jnp.sum(pred * labels, axis=(2, 3))  # (B, C)
         result["union"] = jnp.sum(jnp.maximum(pred, labels), axis=(2, 3))  # (B, C)
-    if figures:
+    if figures == "volume":
+        result["volume"] = out["volume"]  # (B, K, 129, 129)
+    elif figures:
         result["likelihood"] = out["volume"].max(axis=1)  # (B, 129, 129)
         result["probs"] = labels if logits is None else jax.nn.sigmoid(logits)
     return result
@@ -107,17 +203,18 @@ LocalizeStep = Callable[..., dict]
 def make_localize_step(
     model_cfg: ModelConfig, solver_cfg: solver.SolverConfig, bev_source: str = "model"
 ) -> LocalizeStep:
-    """``step(params, device_batch, figures=False) -> dict`` of device arrays: ``pose_tile
-    (B, 3)`` (tile frame: dx, dy m, yaw rad), ``score (B,)``, for a network also ``inter`` /
-    ``union (B, C)`` pixel counts of the thresholded BEV vs the GT labels, and with
-    ``figures=True`` also ``likelihood (B, 129, 129)`` and ``probs (B, C, 128, 128)``.
+    """``step(params, device_batch, figures=False, volume=False) -> dict`` of device arrays:
+    ``pose_tile (B, 3)`` (tile frame: dx, dy m, yaw rad), ``score (B,)``, for a network also
+    ``inter`` / ``union (B, C)`` pixel counts of the thresholded BEV vs the GT labels; with
+    ``figures=True`` also ``likelihood (B, 129, 129)`` and ``probs (B, C, 128, 128)``; with
+    ``volume=True`` (not with figures) also the raw score volume ``volume (B, K, 129, 129)``.
 
-    Built and compiled once per argument triple (cached); ``params`` is ignored (pass None)
-    for ``bev_source="gt"``."""
+    Built once per argument triple (cached); each of the three programs compiles once.
+    ``params`` is ignored (pass None) for ``bev_source="gt"``."""
     if bev_source not in BEV_SOURCES:
         raise ValueError(f"bev_source must be one of {BEV_SOURCES}, got {bev_source!r}")
     compiled = {}
-    for figures in (False, True):
+    for figures in (False, True, "volume"):
         key = (model_cfg, solver_cfg, bev_source, figures)
         compiled[figures] = jax.jit(
             functools.partial(
@@ -130,8 +227,10 @@ def make_localize_step(
             )
         )
 
-    def step(params, batch, figures: bool = False):
-        return compiled[bool(figures)](params, batch)
+    def step(params, batch, figures: bool = False, volume: bool = False):
+        if volume and figures:
+            raise ValueError("a localize step returns either the figure maps or the volume")
+        return compiled["volume" if volume else bool(figures)](params, batch)
 
     return step
 

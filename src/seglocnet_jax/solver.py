@@ -267,13 +267,22 @@ def decode_cell(volume: jax.Array, refine: bool = True) -> tuple[jax.Array, jax.
         for _ in range(volume.ndim - 3):
             fn = jax.vmap(fn)
         return fn(volume)
-    num_k, num_h, num_w = volume.shape
     flat_idx = jnp.argmax(volume.reshape(-1))
     k, h, w = jnp.unravel_index(flat_idx, volume.shape)
     peak = volume[k, h, w]
     cell = jnp.stack([k, h, w]).astype(jnp.float32)
     if not refine:
         return cell, peak
+    return refine_cell(volume, jnp.stack([k, h, w])), peak
+
+
+def refine_cell(volume: jax.Array, cell: jax.Array) -> jax.Array:
+    """Sub-cell refinement of the integer peak ``cell (3,)`` ``(k, h, w)`` of a ``(K, H, W)``
+    volume: separable parabolas through its neighbours in k (wrapping), h and w (not on the
+    border); ``(3,)`` float32 (k in ``[-0.5, K - 0.5)``)."""
+    num_k, num_h, num_w = volume.shape
+    k, h, w = cell[0], cell[1], cell[2]
+    peak = volume[k, h, w]
     dk = _parabola_offset(volume[(k - 1) % num_k, h, w], peak, volume[(k + 1) % num_k, h, w])
     hm, hp = jnp.clip(h - 1, 0, num_h - 1), jnp.clip(h + 1, 0, num_h - 1)
     wm, wp = jnp.clip(w - 1, 0, num_w - 1), jnp.clip(w + 1, 0, num_w - 1)
@@ -281,7 +290,7 @@ def decode_cell(volume: jax.Array, refine: bool = True) -> tuple[jax.Array, jax.
     dw = _parabola_offset(volume[k, h, wm], peak, volume[k, h, wp])
     dh = jnp.where((h > 0) & (h < num_h - 1), dh, 0.0)
     dw = jnp.where((w > 0) & (w < num_w - 1), dw, 0.0)
-    return cell + jnp.stack([dk, dh, dw]), peak
+    return cell.astype(jnp.float32) + jnp.stack([dk, dh, dw])
 
 
 def decode(volume: jax.Array, num_rotations: int | None = None, refine: bool = True):
@@ -343,6 +352,7 @@ __all__ = [
     "log_softmax_volume",
     "labels_to_logits",
     "decode_cell",
+    "refine_cell",
     "decode",
     "localize",
     "tile_pose_to_world",

@@ -1,6 +1,7 @@
 """The evaluate run: restore a checkpoint (none for the GT upper bound), evaluate
-``eval.splits`` with figures through the same localize step as training, write
-``results.json`` and print the table."""
+``eval.splits`` with figures and/or track the drives of ``eval.sequential_splits``
+(``eval.mode``) through the same localize step as training, write ``results.json`` and print
+the tables."""
 
 from __future__ import annotations
 
@@ -44,18 +45,11 @@ def _evaluate(cfg: ExperimentConfig, checkpoint: str | None, workdir: str) -> di
         state, step = ckpt_lib.restore_params(checkpoint, jax.device_get(target))
         params = step_lib.replicate(state.params, mesh)
         runs.progress(f"restored {checkpoint} (step {step})")
-    results = evaluate(
-        params,
-        cfg.eval.splits,
-        max_batches=cfg.eval.max_batches,
-        num_figures=cfg.eval.num_figures,
-    )
-    path = runs.write_results(
-        workdir,
-        cfg,
-        results,
-        {"checkpoint": os.path.abspath(checkpoint) if checkpoint else None, "step": step},
-    )
-    print(runs.format_table(cfg, results), flush=True)
+    results, seq = evaluate.final(params)
+    extra = {"checkpoint": os.path.abspath(checkpoint) if checkpoint else None, "step": step}
+    if seq is not None:
+        extra["sequential"] = seq
+    path = runs.write_results(workdir, cfg, results, extra)
+    print(runs.format_table(cfg, results, seq), flush=True)
     runs.progress(f"wrote {path} and figures under {os.path.join(workdir, 'figures')}")
     return results

@@ -230,11 +230,55 @@ def write_results(workdir: str, cfg: ExperimentConfig, results: dict, extra: dic
     return path
 
 
-def format_table(cfg: ExperimentConfig, results: dict) -> str:
+def _source(cfg: ExperimentConfig) -> str:
+    return "gt" if cfg.eval.bev_source == "gt" else f"{cfg.model.name}-{cfg.model.variant}"
+
+
+def format_table(cfg: ExperimentConfig, results: dict, sequential: dict | None = None) -> str:
+    """The paper-style table of the single-frame splits (``results``) and, with ``sequential``
+    (``{split: summary}`` of :func:`seglocnet_jax.sequential.summarize`), the filtered and
+    single-frame rows of the tracked splits (same frames) and a table of the tracking numbers."""
+    parts = []
     rows = []
-    source = "gt" if cfg.eval.bev_source == "gt" else f"{cfg.model.name}-{cfg.model.variant}"
     for split, res in results.items():
-        rows.append((f"{cfg.name} [{cfg.map.name}, {source}] {split}", res))
+        rows.append((f"{cfg.name} [{cfg.map.name}, {_source(cfg)}] {split}", res))
         if "prior" in res:
             rows.append((f"prior alone (tile centre, no heading) {split}", res["prior"]))
-    return metrics.markdown_table(rows)
+    if rows:
+        parts.append(metrics.markdown_table(rows))
+    if sequential:
+        parts.append(_sequential_tables(cfg, sequential))
+    return "\n\n".join(parts)
+
+
+SEQUENTIAL_COLUMNS = (
+    ("drives", "drives", "{:d}"),
+    ("frames", "frames", "{:d}"),
+    ("tracked_pct", "tracked ≤5 m (%)", "{:.1f}"),
+    ("frames_to_converge", "frames to ≤2 m (median)", "{:.0f}"),
+    ("drives_not_converged", "not converged", "{:d}"),
+    ("drives_never_lost_pct", "never lost >10 frames (%)", "{:.1f}"),
+    ("losses_detected", "losses detected", "{:d}"),
+    ("losses_recovered", "recovered", "{:d}"),
+    ("coverage_90", "GT in 90% region (%)", "{:.1f}"),
+    ("temperature", "T", "{:.3g}"),
+    ("filter_ms_per_frame", "filter ms/frame", "{:.1f}"),
+    ("localize_ms_per_frame", "localize ms/frame", "{:.1f}"),
+)
+
+
+def _sequential_tables(cfg: ExperimentConfig, sequential: dict) -> str:
+    rows = []
+    for split, res in sequential.items():
+        head = f"{cfg.name} [{cfg.map.name}, {_source(cfg)}] {split}"
+        rows.append((f"{head} filtered", res["filtered"]))
+        rows.append((f"{head} single-frame", res["single"]))
+    lines = [metrics.markdown_table(rows, name="Sequential (same frames)"), ""]
+    lines.append("| split | " + " | ".join(c[1] for c in SEQUENTIAL_COLUMNS) + " |")
+    lines.append("|---|" + "|".join("---:" for _ in SEQUENTIAL_COLUMNS) + "|")
+    for split, res in sequential.items():
+        cells = [
+            "–" if res.get(k) is None else fmt.format(res[k]) for k, _, fmt in SEQUENTIAL_COLUMNS
+        ]
+        lines.append(f"| {split} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)

@@ -216,10 +216,23 @@ def dataset_splits(cfg: ExperimentConfig) -> list[str] | None:
 
         _, _, convert_cfg = real_convert.parse_tree(cfg.dataset)
         return sorted(convert_cfg.splits)
-    splits = ["train", "val", "test"]
-    if cfg.data.test_city:  # the generalization split is named by its city
-        splits.append(maps.city_key(cfg.data.test_city))
-    return splits
+    return cfg.data.split_names()  # + the test city's split and the drives, when configured
+
+
+def _check_sequential_splits(ev, splits: list[str]) -> None:
+    """eval.mode=sequential|both: every split it reads must be one the dataset will have."""
+    wanted = [("eval.sequential_splits", s) for s in ev.sequential_splits]
+    if ev.calibration_split:
+        wanted.append(("eval.calibration_split", ev.calibration_split))
+    if ev.temperature is None:
+        wanted.append(("eval.temperature_split", ev.temperature_split))
+    for key, split in wanted:
+        if split not in splits:
+            raise ConfigError(
+                f"{key}: split {split!r} (eval.mode={ev.mode}) is not in the dataset's splits "
+                f"{splits}; name one of them, or set eval.mode=single"
+                + ("" if key != "eval.temperature_split" else " or a fixed eval.temperature")
+            )
 
 
 def _check_cross(cfg: ExperimentConfig) -> None:
@@ -248,6 +261,15 @@ def _check_cross(cfg: ExperimentConfig) -> None:
         for need in ("train", "val"):
             if need not in splits:
                 raise ConfigError(f"the dataset has no {need!r} split (splits: {splits})")
+        if cfg.eval.sequential:
+            _check_sequential_splits(cfg.eval, splits)
+    if cfg.eval.sequential:
+        from seglocnet_jax import sequential
+
+        try:  # the filter's config, as the evaluation will build it
+            sequential.tracker_config(cfg.eval, cfg.solver.num_rotations)
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"eval.tracker / eval.odometry: {err}") from err
     if cfg.eval.bev_source == "gt" and cfg.model.variant == "nm":
         raise ConfigError(
             "eval.bev_source=gt localizes the GT labels against the binary map: it has no neural "

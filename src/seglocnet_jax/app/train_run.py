@@ -1,5 +1,6 @@
 """The train run: prepare data, train with periodic validation and checkpoints, resume, and
-evaluate the final splits with the best checkpoint into the paper's table. Every evaluation
+evaluate the final splits with the best checkpoint into the paper's table (``eval.mode``:
+single frames, whole drives through the sequential filter, or both). Every evaluation
 (validation, best selection, tables, figures) goes through one cached localize step
 (:func:`seglocnet_jax.evaluation.make_localize_step`)."""
 
@@ -12,7 +13,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
-from seglocnet_jax import evaluation
+from seglocnet_jax import evaluation, sequential
 from seglocnet_jax.app import runs
 from seglocnet_jax.app.datasets import prepare_dataset
 from seglocnet_jax.app.schema import ExperimentConfig
@@ -83,6 +84,50 @@ class Evaluator:
         self.seconds += time.time() - t0
         self.rounds += 1
         return out
+
+    def sequential(self, params) -> dict:
+        """Tracks the drives of ``eval.sequential_splits`` (and the calibration split) through
+        the same localize step; ``{split: summary}`` (:mod:`seglocnet_jax.sequential`)."""
+        ev = self.cfg.eval
+
+        def temperature_batches():
+            ld = self.loader(ev.temperature_split)
+            n = ld.batches_per_epoch
+            return iter(ld), n if ev.max_batches is None else min(ev.max_batches, n)
+
+        t0 = time.time()
+        out = sequential.evaluate_sequential(
+            self.step,
+            params,
+            dataset_dir=self.dataset_dir,
+            map_variant=self.cfg.map.name,
+            channels=self.cfg.map.channels,
+            loader_cfg=self.cfg.loader,
+            eval_cfg=ev,
+            num_rotations=self.cfg.solver.num_rotations,
+            place=self.place,
+            temperature_batches=temperature_batches,
+            output_dir=self.workdir,
+        )
+        runs.progress(f"sequential evaluation: {time.time() - t0:.0f} s")
+        return out
+
+    def final(self, params, logger=None, step: int = 0) -> tuple[dict, dict | None]:
+        """The final evaluation of ``eval.mode``: ``(single-frame results by split, sequential
+        results by split or None)``, logged to ``logger`` at ``step``."""
+        ev = self.cfg.eval
+        results = {}
+        if ev.single:
+            results = self(
+                params, ev.splits, max_batches=ev.max_batches, num_figures=ev.num_figures
+            )
+        seq = self.sequential(params) if ev.sequential else None
+        if logger is not None:
+            for split, res in results.items():
+                logger.write(step, split, res)
+            for split, res in (seq or {}).items():
+                logger.write(step, f"{split}_sequential", sequential.scalars(res))
+        return results, seq
 
 
 def train_and_evaluate(cfg: ExperimentConfig, workdir: str) -> dict:
@@ -184,15 +229,8 @@ def _train(cfg: ExperimentConfig, run: runs.RunDir) -> dict:
         f"step {best_step}"
     )
     t_final0 = time.time()
-    results = evaluate(
-        step_lib.replicate(best.params, mesh),
-        cfg.eval.splits,
-        max_batches=cfg.eval.max_batches,
-        num_figures=cfg.eval.num_figures,
-    )
+    results, seq = evaluate.final(step_lib.replicate(best.params, mesh), logger, step)
     t_final = time.time() - t_final0
-    for split, res in results.items():
-        logger.write(step, split, res)
     logger.close()
     timing = {
         "data_preparation_s": round(t_data, 1),
@@ -201,10 +239,11 @@ def _train(cfg: ExperimentConfig, run: runs.RunDir) -> dict:
         "final_evaluation_s": round(t_final, 1),
         "total_s": round(time.time() - t_start, 1),
     }
-    runs.write_results(
-        workdir, cfg, results, {"steps": step, "best_step": best_step, "time": timing}
-    )
-    print(runs.format_table(cfg, results), flush=True)
+    extra = {"steps": step, "best_step": best_step, "time": timing}
+    if seq is not None:
+        extra["sequential"] = seq
+    runs.write_results(workdir, cfg, results, extra)
+    print(runs.format_table(cfg, results, seq), flush=True)
     progress(
         "time: data preparation {data_preparation_s:.0f} s, training {training_s:.0f} s, "
         "validation {validation_s:.0f} s, final evaluation {final_evaluation_s:.0f} s, "

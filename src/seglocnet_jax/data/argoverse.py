@@ -10,7 +10,10 @@ Reads the documented on-disk format directly (see ``real_common`` for why not th
     {dataroot}/{split}/{log_id}/sensors/cameras/{camera}/{timestamp_ns}.jpg
     {dataroot}/{split}/{log_id}/map/log_map_archive_{log_id}____{CITY}_city_{n}.json
 
-A frame is every ``frame_stride``-th LiDAR sweep (10 Hz; stride 5 gives nuScenes' 2 Hz); each
+A frame is every ``frame_stride``-th LiDAR sweep (10 Hz; stride 5 gives nuScenes' 2 Hz); its
+sequence is the log (``sequence_id`` = log id, ``frame_index`` = its index among the log's kept
+frames, consecutive; ``timestamp`` = the sweep's ``timestamp_ns`` / 1e9, so a skipped sweep shows
+as a longer gap); each
 camera contributes its image nearest in time within ``max_sync_ms`` (default 25 ms: the av2
 ``SensorDataloader`` matches a sweep to the nearest image within half the 20 Hz camera period)
 and, like nuScenes, ``cam_to_ego`` maps it into the ego frame at the LiDAR time. Poses are in the
@@ -293,6 +296,7 @@ class ArgoverseReader:
         for log in self.logs(split):
             if not len(log.lidar_t):
                 raise rc.RealDataError(f"{log.dir}/sensors/lidar: no LiDAR sweeps (*.feather)")
+            index = 0  # position among the log's kept frames
             for t in log.lidar_t[:: self.cfg.frame_stride]:
                 try:
                     for cam in self.cfg.cameras:
@@ -308,8 +312,12 @@ class ArgoverseReader:
                         pose=pose,
                         group=log.id,
                         sample_id=f"{log.id}/{int(t)}",
+                        sequence_id=log.id,
+                        frame_index=index,
+                        timestamp=int(t) / 1e9,  # nanoseconds
                     )
                 )
+                index += 1
         if skipped:
             warnings.warn(
                 f"AV2 {split}: skipped {len(skipped)} sweeps without every camera / "

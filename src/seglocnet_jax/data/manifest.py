@@ -18,7 +18,8 @@ before it reads a split (:func:`verify_split`). Shard ``i`` of ``n`` of split ``
 lists another file (another split's shard, or a file listed twice) is refused. Manifests of
 version 1 (before shard checksums) are refused with the remedy: prepare again; so are datasets
 whose ``record_version`` is not :data:`records.RECORD_VERSION` (version 1: float32 LiDAR, PNG
-images only; version 2: compact LiDAR, JPEG images for real data).
+images only; version 2: compact LiDAR, JPEG images for real data; version 3: plus each frame's
+sequence metadata).
 """
 
 from __future__ import annotations

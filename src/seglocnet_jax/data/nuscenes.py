@@ -9,6 +9,8 @@ Reads the documented on-disk format directly (see ``real_common`` for why not th
 
 A frame is a keyframe ``sample``; its pose is the ``ego_pose`` of its LIDAR_TOP sample_data, in
 the map frame of the log's location (x east, y north, metres from the map's south-west origin).
+Its sequence is the scene (``sequence_id`` = scene name, ``frame_index`` = the keyframe's index in
+the scene's sample chain, ``timestamp`` = the sample's timestamp in microseconds / 1e6).
 LiDAR points go to that ego frame through LIDAR_TOP's ``calibrated_sensor``. Cameras fire up to
 ~40 ms apart from the LiDAR; ``cam_to_ego`` therefore maps each camera into the ego frame *at
 the LiDAR time* (camera -> ego at camera time -> map -> ego at LiDAR time), so the 6 cameras and
@@ -218,9 +220,16 @@ class NuScenesReader:
         for scene in self.split_scenes(split):
             record, location = self._scenes[scene]
             token = record["first_sample_token"]
+            index = 0
             while token:
+                if token not in self._sample:
+                    raise rc.RealDataError(
+                        f"{self._table_dir}/sample.json: scene {scene!r} "
+                        f"names missing sample {token!r}"
+                    )
                 sd = self._sd(token, LIDAR)
                 pose = rc.pose_of(self._world_from_ego(sd))
+                stamp = rc.field(self._sample[token], "timestamp", f"{self._table_dir}/sample.json")
                 out.append(
                     rc.Frame(
                         key=token,
@@ -228,14 +237,13 @@ class NuScenesReader:
                         pose=pose,
                         group=scene,
                         sample_id=f"{scene}/{token}",
+                        sequence_id=scene,
+                        frame_index=index,
+                        timestamp=int(stamp) / 1e6,  # microseconds
                     )
                 )
-                if token not in self._sample:
-                    raise rc.RealDataError(
-                        f"{self._table_dir}/sample.json: scene {scene!r} "
-                        f"names missing sample {token!r}"
-                    )
                 token = self._sample[token]["next"]
+                index += 1
         return out
 
     def _sd(self, sample_token: str, channel: str) -> dict:

@@ -3,9 +3,15 @@
 ``prepare(cfg)`` is what the training app calls ("prepare the data if the shards are missing").
 Per city it builds a frame source (the simulator by default, :mod:`.sim_source`), drives a pool of
 poses, assigns spatially disjoint train / val / test frames in the main city (:mod:`.splits`)
-and a generalization-only split named after the test city, draws seeded priors, renders the
-sensors in batches and writes shards atomically. Sensors are prepared once; map variants
-(:mod:`.variants`) only rasterize.
+and a generalization-only split named after the test city, plus whole continuous drives
+(``drives`` in the test city, ``drives_val`` in the main city clear of train: :mod:`.drives`),
+draws seeded priors, renders the sensors in batches and writes shards atomically. Sensors are
+prepared once; map variants (:mod:`.variants`) only rasterize.
+
+Sequence metadata: a pool frame's sequence is its short route (``"{city}-p{round}-route{r:05d}"``,
+``frame_index`` its index along the route, ``timestamp`` distance / ``sim.NOMINAL_SPEED_MPS``)
+when the source reports routes (``drive_routes``), else the frame is a sequence of its own; a
+drive split's sequence is the drive (:mod:`.drives`).
 
 Resumable: everything is a pure function of the config, a shard path that exists is complete
 (atomic rename), and each shard is rendered from its own seed, so an interrupted run resumed
@@ -24,6 +30,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from seglocnet_jax import fileio
+from seglocnet_jax.data import drives as dr
 from seglocnet_jax.data import manifest as mf
 from seglocnet_jax.data import splits as sp
 from seglocnet_jax.data.records import (
@@ -34,12 +41,19 @@ from seglocnet_jax.data.records import (
     shard_name,
     write_shard,
 )
+from seglocnet_jax.data.splits import SplitPlan
 from seglocnet_jax.data.variants import ensure_variant
 from seglocnet_jax.maps import MapConfig, city_key
 
 
 class FrameSource(Protocol):
-    """What preparation needs from a producer of frames in one city (world frame metres)."""
+    """What preparation needs from a producer of frames in one city (world frame metres).
+
+    Optional: ``drive_routes(rng, num_frames)``, :meth:`drive`'s poses with each frame's route
+    (an object with ``poses``, ``route`` and ``index`` ``(n,)`` int and ``timestamps`` ``(n,)``
+    seconds: ``sim.Trajectory``), for the sequence metadata of the pool splits; and
+    ``route(rng, length_m, spacing_m)``, one continuous drive (``poses``, ``timestamps``), which
+    the drive splits need (:mod:`.drives`)."""
 
     def drive(self, rng: np.random.Generator, num_frames: int) -> np.ndarray:
         """Poses ``(num_frames, 3)`` along plausible trajectories."""
@@ -61,6 +75,13 @@ class PrepareConfig:
       city: main city: train / val / test.
       test_city: generalization-only city (its split has the city's name); None to skip.
       num_train, num_val, num_test, num_test_city: frames per split.
+      num_drives: continuous drives in the test city (split ``drives``; 0 or no test city:
+        none).
+      num_val_drives: continuous drives in the main city clear of every train frame (split
+        ``drives_val``; 0: none).
+      drive_spacing_m: metres between consecutive frames of a drive.
+      drive_length_m: length of a drive, metres (``drives``: exactly; ``drives_val``: at most).
+      min_val_drive_m: shortest ``drives_val`` drive, metres.
       pool_factor: poses driven per requested frame per round (spares for the split clearance).
       max_rounds: driving rounds before giving up on filling the splits.
       shard_size: records per shard.
@@ -81,6 +102,11 @@ class PrepareConfig:
     num_val: int = 300
     num_test: int = 300
     num_test_city: int = 300
+    num_drives: int = 8
+    num_val_drives: int = 4
+    drive_spacing_m: float = 5.0
+    drive_length_m: float = 1000.0
+    min_val_drive_m: float = 300.0
     pool_factor: float = 2.0
     max_rounds: int = 8
     shard_size: int = 250
@@ -102,6 +128,32 @@ class PrepareConfig:
                 "data.num_train/num_val/num_test/num_test_city, shard_size and render_batch "
                 f"must be >= 1, got {counts}, {self.shard_size}, {self.render_batch}"
             )
+        if min(self.num_drives, self.num_val_drives) < 0:
+            raise ValueError(
+                "data.num_drives and data.num_val_drives must be >= 0 (0: no such split), got "
+                f"{self.num_drives}, {self.num_val_drives}"
+            )
+        if not self.drive_spacing_m > 0 or not self.drive_length_m >= self.drive_spacing_m:
+            raise ValueError(
+                "data.drive_spacing_m must be > 0 and data.drive_length_m >= it, got "
+                f"{self.drive_spacing_m}, {self.drive_length_m}"
+            )
+        if not 0 < self.min_val_drive_m <= self.drive_length_m:
+            raise ValueError(
+                "data.min_val_drive_m must be in (0, data.drive_length_m], got "
+                f"{self.min_val_drive_m} (drive_length_m {self.drive_length_m})"
+            )
+
+    def split_names(self) -> list[str]:
+        """The splits a prepared dataset of this config holds, in preparation order."""
+        names = ["train", "val", "test"]
+        if self.test_city:
+            names.append(city_key(self.test_city))  # the generalization split: the city's key
+            if self.num_drives:
+                names.append(dr.DRIVES)
+        if self.num_val_drives:
+            names.append(dr.VAL_DRIVES)
+        return names
 
     def identity(self) -> dict:
         """The JSON-able config that defines the sensor shards (resume/loader check)."""
@@ -111,26 +163,66 @@ class PrepareConfig:
         return json.loads(json.dumps(d))
 
 
-@dataclasses.dataclass(frozen=True)
-class SplitPlan:
-    """Frames of one split: ``poses`` (n, 3) and ``priors`` (n, 2) world metres/radians."""
-
-    name: str
-    city: str
-    poses: np.ndarray
-    priors: np.ndarray
-
-
 def _seed(*parts: int) -> int:
     return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1)[0])
 
 
-def _drive_pool(source: FrameSource, seed: int, city_idx: int, round_: int, n: int) -> np.ndarray:
+@dataclasses.dataclass(frozen=True)
+class Pool:
+    """Driven frames: ``poses`` (n, 3) and each frame's sequence metadata (n,)."""
+
+    poses: np.ndarray
+    sequence_ids: np.ndarray  # str (object array)
+    frame_index: np.ndarray  # int64
+    timestamps: np.ndarray  # float64 seconds
+
+    def __add__(self, other: Pool) -> Pool:
+        pairs = zip(self.fields(), other.fields(), strict=True)
+        return Pool(*(np.concatenate([a, b]) for a, b in pairs))
+
+    def fields(self) -> tuple:
+        return self.poses, self.sequence_ids, self.frame_index, self.timestamps
+
+    def take(self, idx: np.ndarray) -> Pool:
+        return Pool(*(a[idx] for a in self.fields()))
+
+
+EMPTY_POOL = Pool(np.zeros((0, 3)), np.zeros(0, object), np.zeros(0, np.int64), np.zeros(0))
+
+
+def _drive_pool(
+    source: FrameSource, seed: int, city_idx: int, round_: int, n: int, city: str
+) -> Pool:
     rng = np.random.default_rng([seed, city_idx, round_, 0xD21])
-    poses = np.asarray(source.drive(rng, n), np.float64)  # (n, 3)
+    routes = getattr(source, "drive_routes", None)
+    traj = routes(rng, n) if routes is not None else None
+    poses = np.asarray(source.drive(rng, n) if traj is None else traj.poses, np.float64)
     if poses.ndim != 2 or poses.shape[1] != 3 or not np.all(np.isfinite(poses)):
         raise ValueError(f"frame source drive() returned {poses.shape} poses, expected (n, 3)")
-    return poses
+    if traj is None:  # no routes known: every frame is a sequence of its own
+        seq = [f"{city}-p{round_}-frame{i:06d}" for i in range(len(poses))]
+        return Pool(
+            poses, np.array(seq, object), np.zeros(len(poses), np.int64), np.zeros(len(poses))
+        )
+    seq = [f"{city}-p{round_}-route{int(r):05d}" for r in traj.route]
+    return Pool(
+        poses,
+        np.array(seq, object),
+        np.asarray(traj.index, np.int64),
+        np.asarray(traj.timestamps, np.float64),
+    )
+
+
+def _plan(name: str, city: str, pool: Pool, priors: np.ndarray) -> SplitPlan:
+    return SplitPlan(
+        name,
+        city,
+        pool.poses,
+        priors,
+        sequence_ids=pool.sequence_ids,
+        frame_index=pool.frame_index,
+        timestamps=pool.timestamps,
+    )
 
 
 def plan_main_city(source: FrameSource, cfg: PrepareConfig) -> list[SplitPlan]:
@@ -138,11 +230,12 @@ def plan_main_city(source: FrameSource, cfg: PrepareConfig) -> list[SplitPlan]:
     want = {"train": cfg.num_train, "val": cfg.num_val, "test": cfg.num_test}
     names = list(want)
     per_round = int(np.ceil(cfg.pool_factor * sum(want.values())))
-    pool = np.zeros((0, 3))
+    key = city_key(cfg.city)
+    pool = EMPTY_POOL
     for round_ in range(cfg.max_rounds):
-        pool = np.concatenate([pool, _drive_pool(source, cfg.seed, 0, round_, per_round)])
-        labels = sp.assign_stripes(pool[:, :2], want, cfg.split, cfg.seed)
-        labels = sp.assign_frames(pool[:, :2], labels, names, cfg.split)
+        pool = pool + _drive_pool(source, cfg.seed, 0, round_, per_round, key)
+        labels = sp.assign_stripes(pool.poses[:, :2], want, cfg.split, cfg.seed)
+        labels = sp.assign_frames(pool.poses[:, :2], labels, names, cfg.split)
         avail = {n: np.flatnonzero(labels == n) for n in want}
         if all(len(avail[n]) >= want[n] for n in want):
             break
@@ -155,9 +248,9 @@ def plan_main_city(source: FrameSource, cfg: PrepareConfig) -> list[SplitPlan]:
     plans = []
     for stream, name in enumerate(names):
         idx = avail[name][sp.select_evenly(len(avail[name]), want[name])]
-        poses = pool[idx]
-        priors = sp.seeded_priors(poses[:, :2], cfg.seed, stream)
-        plans.append(SplitPlan(name, city_key(cfg.city), poses, priors))
+        frames = pool.take(idx)
+        priors = sp.seeded_priors(frames.poses[:, :2], cfg.seed, stream)
+        plans.append(_plan(name, key, frames, priors))
     sp.check_disjoint({p.name: p.poses[:, :2] for p in plans})
     return plans
 
@@ -165,11 +258,11 @@ def plan_main_city(source: FrameSource, cfg: PrepareConfig) -> list[SplitPlan]:
 def plan_test_city(source: FrameSource, cfg: PrepareConfig) -> SplitPlan:
     """The generalization split: ``cfg.num_test_city`` frames spread over one drive."""
     n = cfg.num_test_city
-    pool = _drive_pool(source, cfg.seed, 1, 0, int(np.ceil(cfg.pool_factor * n)))
-    poses = pool[sp.select_evenly(len(pool), n)]
-    priors = sp.seeded_priors(poses[:, :2], cfg.seed, 3)
     key = city_key(cfg.test_city)  # split and city named by the key (a path is no name)
-    return SplitPlan(key, key, poses, priors)
+    pool = _drive_pool(source, cfg.seed, 1, 0, int(np.ceil(cfg.pool_factor * n)), key)
+    frames = pool.take(sp.select_evenly(len(pool.poses), n))
+    priors = sp.seeded_priors(frames.poses[:, :2], cfg.seed, 3)
+    return _plan(key, key, frames, priors)
 
 
 def _planned_splits(plans: list[SplitPlan], shard_size: int) -> dict:
@@ -237,7 +330,10 @@ def write_plan(
                 sample = dict(
                     sample,
                     city=plan.city,  # the city key, whatever the source calls the city
-                    sample_id=f"{plan.city}-{plan.name}-{i:06d}",
+                    sample_id=plan.sample_id(i),
+                    sequence_id=str(plan.sequence_ids[i]),
+                    frame_index=np.int64(plan.frame_index[i]),
+                    timestamp=np.float64(plan.timestamps[i]),
                     prior=np.asarray(plan.priors[i], np.float64),
                 )
                 records.append(
@@ -344,11 +440,18 @@ def _prepare(cfg: PrepareConfig, dataset_dir: str, source_factory, variants) -> 
         factory = default_source_factory(cfg)
     sources = {}
     if man is None or not man["complete"] or not all_shards_exist(man, dataset_dir):
-        sources[city_key(cfg.city)] = factory(cfg.city)  # by city key, as the manifest
-        plans = plan_main_city(sources[city_key(cfg.city)], cfg)
+        main = city_key(cfg.city)
+        sources[main] = factory(cfg.city)  # by city key, as the manifest
+        plans = plan_main_city(sources[main], cfg)
         if cfg.test_city:
-            sources[city_key(cfg.test_city)] = factory(cfg.test_city)
-            plans.append(plan_test_city(sources[city_key(cfg.test_city)], cfg))
+            other = city_key(cfg.test_city)
+            sources[other] = factory(cfg.test_city)
+            plans.append(plan_test_city(sources[other], cfg))
+            if cfg.num_drives:
+                plans.append(dr.plan_drives(sources[other], cfg, other))
+        if cfg.num_val_drives:
+            train = plans[0].poses[:, :2]
+            plans.append(dr.plan_val_drives(sources[main], cfg, main, train))
         planned = _planned_splits(plans, cfg.shard_size)
         if man is None:
             os.makedirs(dataset_dir, exist_ok=True)
@@ -370,7 +473,7 @@ def _prepare(cfg: PrepareConfig, dataset_dir: str, source_factory, variants) -> 
                     planned[plan.name],
                     sources[plan.city].render,
                     cfg,
-                    split_idx,
+                    dr.DRIVE_STREAMS.get(plan.name, split_idx),  # drives: whatever else exists
                     bar,
                 )
                 mf.write_manifest(dataset_dir, man)  # the split's shard checksums

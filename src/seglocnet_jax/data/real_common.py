@@ -48,6 +48,10 @@ class Frame:
       pose: ``(3,)`` world x, y (m) and yaw (rad, CCW from east) of the ego at the LiDAR time.
       group: scene / log the frame belongs to (for reports and splits).
       sample_id: the record's ``sample_id`` (unique within the dataset, stable).
+      sequence_id: the record's ``sequence_id`` (nuScenes scene name, AV2 log id).
+      frame_index: the frame's position in its sequence (0-based, consecutive over the frames
+        the reader lists).
+      timestamp: seconds on the dataset's clock (nuScenes sample time, AV2 sweep time).
     """
 
     key: str
@@ -55,6 +59,9 @@ class Frame:
     pose: np.ndarray
     group: str
     sample_id: str
+    sequence_id: str
+    frame_index: int
+    timestamp: float
 
 
 class RealReader(Protocol):
@@ -217,7 +224,7 @@ def frame_sample(
     """The sample dict (``schema.SAMPLE_KEYS``) of ``frame``.
 
     Args:
-      frame: the frame (``sample_id``, ``city``, ``pose``).
+      frame: the frame (``sample_id``, ``city``, ``pose`` and the sequence metadata).
       views: the cameras in output order, each ``(image path, (3, 3) intrinsics in the file's
         pixels, (4, 4) cam_to_ego in the dataset's ego frame, radial distortion (k1, k2, k3)
         to undo or None for a pinhole image)``; an iterable, consumed one camera at a time (so
@@ -242,6 +249,9 @@ def frame_sample(
     return {
         "sample_id": frame.sample_id,
         "city": frame.city,
+        "sequence_id": frame.sequence_id,
+        "frame_index": np.int64(frame.frame_index),
+        "timestamp": np.float64(frame.timestamp),
         "pose": np.asarray(frame.pose, np.float64),
         "images": np.stack(images),  # (N, H, W, 3)
         "intrinsics": np.stack(intrinsics),  # (N, 3, 3)

@@ -1,6 +1,6 @@
 """Sample serialization and ArrayRecord shards: the one seam to array_record.
 
-Record format, version ``RECORD_VERSION`` = 2 (a record is one frame, bytes):
+Record format, version ``RECORD_VERSION`` = 3 (a record is one frame, bytes):
 
 * ``MAGIC`` (4 bytes, ``b"SLR1"``) then a msgpack map (``use_bin_type``) with
   ``"v"`` (int, the record version) and ``"f"`` (a map field name -> encoded field).
@@ -8,9 +8,10 @@ Record format, version ``RECORD_VERSION`` = 2 (a record is one frame, bytes):
   seeded world (x, y) prior in metres that evaluation uses). An encoded field is one of
 
   ``{"t": "str", "v": str}``
-      ``sample_id``, ``city``.
+      ``sample_id``, ``city``, ``sequence_id``.
   ``{"t": "arr", "dtype": numpy dtype str (e.g. "<f4"), "shape": [ints], "b": raw C-order bytes}``
-      ``pose``, ``intrinsics``, ``cam_to_ego``, ``prior``: bit-exact.
+      ``pose``, ``intrinsics``, ``cam_to_ego``, ``prior``, and the 0-d ``frame_index`` (``<i8``)
+      and ``timestamp`` (``<f8``, seconds): bit-exact.
   ``{"t": "png", "shape": [N, H, W, 3], "b": [PNG bytes per camera]}``
       ``images``, lossless (decoded bit-exactly with Pillow): the simulator's codec
       (``image_codec="png"``).
@@ -39,8 +40,10 @@ the schema's ``[0, 1]`` explicitly. A ~30k-point sweep is 210 kB before zlib and
 (simulator and synthetic street sweeps, ``experiments/bench_records.py``), instead of 480 kB of
 float32.
 
-Version 1 (float32 LiDAR, PNG images only) is refused with the remedy (prepare again), both per
-record (:func:`decode_sample`) and per dataset (``manifest.read_manifest``).
+Older versions are refused with the remedy (prepare or convert again), both per record
+(:func:`decode_sample`) and per dataset (``manifest.read_manifest``): version 1 (float32 LiDAR,
+PNG images only), version 2 (no sequence metadata: ``sequence_id``, ``frame_index``,
+``timestamp``).
 
 Shards are written under a temporary name and renamed when complete (:func:`fileio.atomic_path`),
 so a shard path that exists is a finished shard. Integrity: :func:`write_shard` returns the
@@ -67,8 +70,12 @@ from seglocnet_jax import fileio
 from seglocnet_jax.data.schema import SAMPLE_KEYS, SchemaError, check_sample
 
 MAGIC = b"SLR1"
-RECORD_VERSION = 2  # 2: compact LiDAR (int16 fixed point + uint8 intensity), JPEG images
-RECORD_CHANGES = "version 2 stores LiDAR in 1/128 m fixed point and real-data images as JPEG"
+# 2: compact LiDAR (int16 fixed point + uint8 intensity), JPEG images; 3: sequence metadata
+RECORD_VERSION = 3
+RECORD_CHANGES = (
+    "version 3 adds each frame's sequence metadata (sequence_id, frame_index, timestamp); "
+    "version 2 stored LiDAR in 1/128 m fixed point and real-data images as JPEG"
+)
 EXTRA_KEYS: dict[str, tuple[str, tuple]] = {
     "prior": ("float64", (2,)),  # world (x, y) metres: GT + U[-PRIOR_RANGE, PRIOR_RANGE]
 }
@@ -247,7 +254,7 @@ def encode_sample(
 
 def array_field(value) -> dict:
     """A raw array field (every array but images and LiDAR): dtype, shape, C-order bytes."""
-    arr = np.ascontiguousarray(value)
+    arr = np.asarray(value, order="C")  # 0-d stays 0-d (frame_index, timestamp)
     return {"t": "arr", "dtype": arr.dtype.str, "shape": list(arr.shape), "b": arr.tobytes()}
 
 

@@ -4,7 +4,14 @@ pipeline, the loader and the model.
 A *sample* is one frame as a producer (simulator or converter) emits it, before any map variant
 is applied. Producers return a plain ``dict`` with exactly ``SAMPLE_KEYS``; :func:`check_sample`
 validates one and names the offending key. A *batch* is what the loader yields and the jitted
-model consumes: fixed shapes, NumPy arrays, keys ``BATCH_KEYS``.
+model consumes: fixed shapes, NumPy arrays, keys ``BATCH_KEYS``; its ``BATCH_METADATA_KEYS``
+stay on the host (never placed on devices, never passed into jit).
+
+Sequences: every sample belongs to a sequence (``sequence_id``: a simulated drive or route, a
+nuScenes scene, an AV2 log) at position ``frame_index`` (0-based; consecutive 0..n-1 within a
+simulated drive, the keyframe / kept sweep's index within a scene / log) and time ``timestamp``
+(seconds; the dataset's clock for real data, distance along the route / the nominal speed for
+the simulator). A split's frames of one sequence are stored in ``frame_index`` order.
 
 Frames: world = the city's local metric ENU frame (see :mod:`seglocnet_jax.geometry`); ego =
 x forward, y left, z up, origin on the ground below the vehicle reference point (z = 0 is the
@@ -32,6 +39,9 @@ EGO_HEIGHT_M: dict[str, float] = {"sim": 0.0, "nuscenes": 0.0, "av2": 0.33}
 SAMPLE_KEYS: dict[str, tuple[str, tuple]] = {
     "sample_id": ("str", ()),  # unique within a dataset, stable across runs
     "city": ("str", ()),  # city key: "helsinki", "kouvola", "boston-seaport", "MIA", ...
+    "sequence_id": ("str", ()),  # drive / route / nuScenes scene name / AV2 log id
+    "frame_index": ("int64", ()),  # >= 0: position of the frame in its sequence
+    "timestamp": ("float64", ()),  # seconds (sim: distance along the route / nominal speed)
     "pose": ("float64", (3,)),  # world x (m), y (m), yaw (rad, CCW from east)
     "images": ("uint8", ("N", "H", "W", 3)),  # RGB
     "intrinsics": ("float32", ("N", 3, 3)),  # pixels of the stored image size
@@ -49,10 +59,27 @@ BATCH_KEYS: dict[str, tuple[str, tuple]] = {
     "bev_gt": ("float32", ("B", "C", 128, 128)),  # {0, 1} map cut out at the GT pose
     "tile": ("float32", ("B", "C", 256, 256)),  # {0, 1} map tile around the prior
     "pose_tile": ("float32", ("B", 3)),  # GT (dx, dy, yaw) relative to the tile centre
-    # Metadata kept in NumPy (never passed into jit):
+    # Metadata kept in NumPy (never passed into jit): BATCH_METADATA_KEYS.
     "tile_center": ("float64", ("B", 2)),  # world (x, y) of the tile centre (snapped prior)
     "pose": ("float64", ("B", 3)),  # GT world pose
+    "valid": ("bool", ("B",)),  # False for the rows that pad the last evaluation batch
+    "sample_id": ("str", ("B",)),  # NumPy unicode arrays (dtype kind "U")
+    "city": ("str", ("B",)),
+    "sequence_id": ("str", ("B",)),
+    "frame_index": ("int64", ("B",)),
+    "timestamp": ("float64", ("B",)),  # seconds
 }
+# Batch keys that stay on the host (``training.step.HOST_ONLY_KEYS`` lists the same).
+BATCH_METADATA_KEYS = (
+    "tile_center",
+    "pose",
+    "valid",
+    "sample_id",
+    "city",
+    "sequence_id",
+    "frame_index",
+    "timestamp",
+)
 
 
 class SchemaError(ValueError):
@@ -87,4 +114,6 @@ def check_sample(sample: dict, where: str = "sample") -> dict:
                 raise SchemaError(f"{where}: key {key!r} has shape {arr.shape}, expected {shape}")
         if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
             raise SchemaError(f"{where}: key {key!r} has non-finite values")
+    if int(sample["frame_index"]) < 0:
+        raise SchemaError(f"{where}: key 'frame_index' must be >= 0, got {sample['frame_index']}")
     return sample

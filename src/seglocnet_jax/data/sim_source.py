@@ -1,7 +1,8 @@
 """The simulator as a :class:`data.prepare.FrameSource` (the embedded default producer).
 
 Thin adapter over :mod:`seglocnet_jax.sim`: ``build_world(city, cfg, seed)``,
-``drive(world, rng, num_frames, spacing_m)`` and ``Simulator(world, sensor_cfg).render(poses,
+``drive(world, rng, num_frames, spacing_m)`` (``drive_routes``: with the routes), ``route(world,
+rng, length_m, spacing_m)`` (continuous drives) and ``Simulator(world, sensor_cfg).render(poses,
 seed)``. ``PrepareConfig.sim`` is a plain dict: ``spacing_m`` (metres between consecutive
 poses), ``world`` and ``sensors`` (sub-dicts for the simulator's own config dataclasses).
 
@@ -71,6 +72,15 @@ class SimSource:
 
     def drive(self, rng: np.random.Generator, num_frames: int) -> np.ndarray:
         return np.asarray(self._sim.drive(self.world, rng, num_frames, self.spacing_m))
+
+    def drive_routes(self, rng: np.random.Generator, num_frames: int):
+        """:meth:`drive`'s frames (same draws, same poses) with their routes
+        (``sim.Trajectory``)."""
+        return self._sim.drive_routes(self.world, rng, num_frames, self.spacing_m)
+
+    def route(self, rng: np.random.Generator, length_m: float, spacing_m: float):
+        """One continuous drive (``sim.Trajectory``; see ``sim.trajectory.route``)."""
+        return self._sim.route(self.world, rng, length_m, spacing_m)
 
     def render(self, poses: np.ndarray, seed: int) -> list[dict]:
         """Sample dicts (``schema.SAMPLE_KEYS``) of ``poses``, each validated."""

@@ -22,6 +22,34 @@ from seglocnet_jax import geometry
 BEV_RADIUS = geometry.BEV_SIZE * geometry.RESOLUTION / 2 * math.sqrt(2)  # 45.25 m
 
 
+@dataclasses.dataclass(frozen=True)
+class SplitPlan:
+    """Frames of one split (world metres / radians), in record order.
+
+    Attributes:
+      poses: ``(n, 3)`` GT poses.
+      priors: ``(n, 2)`` seeded evaluation priors.
+      sequence_ids: ``(n,)`` str (object array): each frame's sequence (route or drive).
+      frame_index: ``(n,)`` int64 position of each frame in its sequence.
+      timestamps: ``(n,)`` float64 seconds.
+      sample_ids: one per frame; None: ``"{city}-{name}-{i:06d}"``.
+    """
+
+    name: str
+    city: str
+    poses: np.ndarray
+    priors: np.ndarray
+    sequence_ids: np.ndarray
+    frame_index: np.ndarray
+    timestamps: np.ndarray
+    sample_ids: tuple[str, ...] | None = None
+
+    def sample_id(self, i: int) -> str:
+        if self.sample_ids is not None:
+            return self.sample_ids[i]
+        return f"{self.city}-{self.name}-{i:06d}"
+
+
 class SplitError(ValueError):
     """Split assignment failed or violated disjointness; the message says which splits."""
 

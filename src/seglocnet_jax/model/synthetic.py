@@ -104,7 +104,9 @@ def make_batch(
     num_points: int = 8192,
     num_rotations: int = geometry.NUM_ROTATIONS,
 ) -> dict:
-    """A batch with every ``BATCH_KEYS`` entry; the GT cell is drawn uniformly in the volume."""
+    """A batch with the ``BATCH_KEYS`` the model and solver read, plus ``tile_center`` and
+    ``pose`` (not the loader's ids, ``valid`` or sequence metadata); the GT cell is drawn
+    uniformly in the volume."""
     rng = np.random.default_rng(seed)
     h, w = image_hw
     intr, cam = camera_rig(num_cams, h, w)

@@ -155,18 +155,27 @@ class Simulator:
             outs.append(jax.device_get(out))
         return {k: np.concatenate([o[k] for o in outs])[:b] for k in outs[0]}
 
-    def render(self, poses, seed: int, sample_ids=None) -> list[dict]:
-        """One sample dict (keys ``sample_id``, ``city``, ``pose``, ``images``, ``intrinsics``,
-        ``cam_to_ego``, ``lidar``: ``data.schema.SAMPLE_KEYS``) per pose; ``sample_id``
-        defaults to ``"{city}-{seed}-{i:04d}"``."""
+    def render(self, poses, seed: int, sample_ids=None, sequences=None) -> list[dict]:
+        """One sample dict (keys ``sample_id``, ``city``, ``sequence_id``, ``frame_index``,
+        ``timestamp``, ``pose``, ``images``, ``intrinsics``, ``cam_to_ego``, ``lidar``:
+        ``data.schema.SAMPLE_KEYS``) per pose; ``sample_id`` defaults to
+        ``"{city}-{seed}-{i:04d}"``. ``sequences``: one ``(sequence_id, frame_index, timestamp
+        seconds)`` per pose; by default the poses are one sequence ``"{city}-{seed}"`` in their
+        order, ``timestamp`` 0 (unknown)."""
         poses = np.asarray(poses, np.float64).reshape(-1, 3)
         arrays = self.render_arrays(poses, seed)
         samples = []
         for i, pose in enumerate(poses):
             sid = sample_ids[i] if sample_ids is not None else f"{self.world.name}-{seed}-{i:04d}"
+            seq, index, stamp = (
+                sequences[i] if sequences is not None else (f"{self.world.name}-{seed}", i, 0.0)
+            )
             sample = {
                 "sample_id": sid,
                 "city": self.world.name,
+                "sequence_id": str(seq),
+                "frame_index": np.int64(index),
+                "timestamp": np.float64(stamp),
                 "pose": pose.copy(),
                 "images": arrays["images"][i],
                 "intrinsics": self.intrinsics.copy(),

@@ -26,7 +26,8 @@ class TrackerConfig:
       sigma_xy_per_m: m of translation noise per m travelled (added in quadrature).
       sigma_yaw: rad, yaw noise added every frame.
       sigma_yaw_per_rad: rad of yaw noise per rad turned (added in quadrature).
-      kernel_radius: half-width (cells, bins) of the blur kernels; a larger sigma is truncated.
+      kernel_radius: most half-width (cells, bins) of the blur kernels: a larger sigma is
+        truncated; a smaller one uses fewer taps (out to 5.7 sigmas, see :func:`predict`).
       floor: weight of a uniform mixed into the prior at every update.
       lost_log_odds: nats; a loss when the CUSUM of the prior-vs-uniform log Bayes factor falls
         below ``-lost_log_odds`` (0 disables).

@@ -28,12 +28,13 @@ def _marginal_xy(prob):
     return (ones @ prob.reshape(k_dim, n * n)).reshape(n, n)
 
 
-def _estimate(belief: Belief, cfg: TrackerConfig) -> dict:
-    """See :func:`estimate`."""
+def _estimate(belief: Belief, cfg: TrackerConfig, p_k=None) -> dict:
+    """See :func:`estimate`; ``p_k``: the yaw marginal ``(K,)`` when the caller has it."""
     prob = belief.prob
     cell = _map_cell(prob)
     p_xy = _marginal_xy(prob)  # (N, N)
-    p_k = prob.reshape(cfg.num_rotations, -1).sum(axis=1)  # (K,)
+    if p_k is None:
+        p_k = prob.sum(axis=(1, 2))  # (K,)
     r = int(round(cfg.peak_radius / cfg.resolution))
     box = jax.lax.dynamic_slice(jnp.pad(p_xy, r), (cell[1], cell[2]), (2 * r + 1, 2 * r + 1))
     entropy = -jnp.sum(jnp.where(p_xy > 0, p_xy * jnp.log(jnp.maximum(p_xy, 1e-38)), 0.0))
@@ -71,14 +72,17 @@ def _reset_prior(cfg: TrackerConfig):
 def _update_kernel(belief: Belief, log_lik, cfg: TrackerConfig):
     n = cfg.num_cells
     lik = jnp.exp(log_lik - log_lik.max())  # (K, N, N) in (0, 1], max 1
-    prior = belief.prob
-    z_prior = jnp.sum(prior * lik)  # sum prior * L (prior sums to 1)
-    z_mean = jnp.sum(lik) / n  # sum uniform * L
+    prior = (1.0 - cfg.floor) * belief.prob + cfg.floor / n  # the prior with the floor
+    # Per slice: the unnormalized posterior's yaw marginal, whose sum is the evidence
+    # z = (1 - floor) sum prior * L + floor * mean L (the prior sums to 1). The barrier keeps
+    # XLA from turning z into a reduction (a pass over the volume) of its own.
+    p_k = jnp.sum(prior * lik, axis=(1, 2))  # (K,)
+    z_mean = jnp.sum(lik, axis=(1, 2)).sum() / n  # sum uniform * L
     # z = 0 only when floor = 0 and the prior misses every cell the likelihood allows: then
     # the agreement is -inf and the loss test below resets the belief.
-    z = jnp.maximum((1.0 - cfg.floor) * z_prior + cfg.floor * z_mean, 1e-38)
-    post = ((1.0 - cfg.floor) * prior + cfg.floor / n) * lik / z
-    stats = _estimate(belief._replace(prob=post), cfg)
+    z = jnp.maximum(jax.lax.optimization_barrier(p_k).sum(), 1e-38)
+    post = prior * lik / z
+    stats = _estimate(belief._replace(prob=post), cfg, p_k / z)
     agreement = jnp.log(z) - jnp.log(z_mean)  # log Bayes factor, this frame (nats)
     cusum = jnp.minimum(0.0, belief.cusum + agreement)
     by_odds = (cfg.lost_log_odds > 0) & (cusum < -cfg.lost_log_odds)

@@ -20,8 +20,18 @@ from seglocnet_jax.training.state import TrainState
 # (params, batch, rng) -> (scalar loss, dict of scalar metrics)
 LossFn = Callable[[dict, dict, jax.Array], tuple[jax.Array, dict]]
 
-# Batch keys that stay on the host (float64 world coordinates, strings): never sent to devices.
-HOST_ONLY_KEYS = ("tile_center", "pose", "sample_id", "city", "valid")
+# Batch keys that stay on the host (float64 world coordinates, strings, sequence metadata): never
+# sent to devices. The same as data.schema.BATCH_METADATA_KEYS (tests/test_data_loader.py).
+HOST_ONLY_KEYS = (
+    "tile_center",
+    "pose",
+    "valid",
+    "sample_id",
+    "city",
+    "sequence_id",
+    "frame_index",
+    "timestamp",
+)
 
 
 def make_mesh(num_devices: int | None = None) -> jax.sharding.Mesh:

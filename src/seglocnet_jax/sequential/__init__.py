@@ -1,0 +1,207 @@
+"""Sequential localization: track a car along whole drives from one coarse prior.
+
+Every sequence (a simulated drive, a nuScenes scene, an AV2 log) of a split is tracked by the
+Bayes filter over the solver's pose grid (:mod:`seglocnet_jax.tracking`), frame by frame::
+
+    frame 0:  belief = uniform over the 129 x 129 x K cells around the record's stored prior
+    frame t:  belief = predict(belief, odometry[t])          # the vehicle's own odometry
+              tile   = the map raster cut around the belief's window centre (never the truth)
+              volume = the one localize step (evaluation.make_localize_step, volume variant)
+              belief = update(belief, log_softmax(volume / T))   # loss detection + re-widening
+
+What the filter reads: the sensors (through the network or, for ``bev_source="gt"``, the GT
+labels), the map, the first frame's stored coarse prior and the odometry. The odometry is the
+vehicle's measurement model: :func:`tracking.odometry.simulate` of the GT poses with a seed per
+drive (``eval.odometry_seed`` and the sequence id), i.e. wheel / IMU odometry with the noise of
+``eval.odometry``. The GT poses are used only to simulate that odometry and to score.
+
+On the same frames the single-frame protocol runs too (each frame localized from its own stored
+prior tile, as ``evaluation.evaluate_split`` does), through the same step.
+
+The likelihood temperature ``T`` is fitted on single frames of a validation split
+(:class:`TemperatureFit`: the mean GT-cell log-likelihood accumulated per batch over a log grid
+of ``T``, then a parabola through the best three points; no volume is kept) unless it is given.
+
+Per split (:func:`summarize`), with these definitions:
+
+* ``filtered`` / ``single``: the paper's recalls, APE and AOE of the filtered pose (the
+  posterior's mode, refined to sub-cell by the solver's parabola fit on the log posterior) and of
+  the single-frame pose, over the same frames.
+* ``tracked_pct``: frames whose filtered position error is <= ``TRACKED_M`` (5 m); a frame with
+  a larger error is *lost*.
+* ``frames_to_converge``: per drive, the index of the first frame from which the filtered error
+  stays <= ``CONVERGED_M`` (2 m) to the end of the drive (0: on track from the first frame; a
+  drive that never settles is not converged and counted in ``drives_not_converged``);
+  ``metres_to_converge``: the distance driven until then.
+* ``losses_detected``: track losses the filter detected itself (from the belief: the tracker's
+  CUSUM and shape tests); ``losses_recovered``: those followed within ``RECOVERY_FRAMES`` frames
+  (the detection frame included) by a frame with error <= ``CONVERGED_M``.
+  ``lost_episodes``: maximal runs of lost frames; ``lost_episodes_detected``: those during which
+  (or on the frame after which) the filter flagged a loss.
+* ``drives_never_lost_pct``: drives without a run of more than ``MAX_LOST_RUN`` (10) consecutive
+  lost frames.
+* ``coverage``: for each mass ``m`` of ``MASSES``, % of frames whose GT cell lies in the
+  posterior's highest-probability region of mass ``m`` over the (yaw, x, y) cells (outside the
+  window: not covered); ``ellipse_coverage``: the same for the Gaussian ellipse of the (x, y)
+  mean and covariance. ``coverage_90``: the 90 % region.
+* ``filter_ms_per_frame`` (prediction, tile cut, update and read-outs) and
+  ``localize_ms_per_frame`` (both localize steps; per frame of a lockstep batch), after the
+  first ``WARMUP_STEPS`` lockstep steps (compilation); ``index_s``: reading the split's
+  sequence metadata (every record decoded once); ``seconds``: the split, all included.
+
+Modules: :mod:`.temperature` (the streamed fit), :mod:`.tracks` (drives of a split, the
+filter's config and the lockstep loop), :mod:`.report` (numbers, arrays, figures);
+:func:`evaluate_sequential` ties them for the apps.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+from seglocnet_jax import viz
+from seglocnet_jax.evaluation import EvalConfig, LocalizeStep
+from seglocnet_jax.sequential.report import (
+    CONVERGED_M,
+    MASSES,
+    MAX_LOST_RUN,
+    RECOVERY_FRAMES,
+    TRACKED_M,
+    drive_summary,
+    scalars,
+    summarize,
+    write_arrays,
+    write_figures,
+)
+from seglocnet_jax.sequential.temperature import TemperatureFit, fit_temperature, gt_cells
+from seglocnet_jax.sequential.tracks import (
+    Drive,
+    DriveSplit,
+    Track,
+    drive_seed,
+    filter_tile,
+    start_belief,
+    track_split,
+    tracker_config,
+)
+
+__all__ = [
+    "TRACKED_M",
+    "CONVERGED_M",
+    "MAX_LOST_RUN",
+    "RECOVERY_FRAMES",
+    "MASSES",
+    "tracker_config",
+    "drive_seed",
+    "TemperatureFit",
+    "gt_cells",
+    "fit_temperature",
+    "Drive",
+    "DriveSplit",
+    "Track",
+    "filter_tile",
+    "start_belief",
+    "track_split",
+    "drive_summary",
+    "summarize",
+    "scalars",
+    "write_figures",
+    "write_arrays",
+    "evaluate_sequential",
+]
+
+
+def evaluate_sequential(
+    step: LocalizeStep,
+    params,
+    *,
+    dataset_dir: str,
+    map_variant: str,
+    channels,
+    loader_cfg,
+    eval_cfg: EvalConfig,
+    num_rotations: int,
+    place,
+    temperature_batches,
+    output_dir: str | None,
+) -> dict:
+    """Tracks the drives of ``eval_cfg.tracked_splits()`` and returns ``{split: summary}``.
+
+    ``temperature_batches``: ``() -> (batches, num_batches)`` of the temperature split (called
+    only when ``eval.temperature`` is null). ``output_dir``: per-frame arrays
+    (``sequential/<split>.npz``) and, with ``eval.num_figures > 0``, figures
+    (``figures/sequential/``: drives, error vs distance, the calibration figure)."""
+    cfg = tracker_config(eval_cfg, num_rotations)
+    t_fit = time.time()
+    if eval_cfg.temperature is None:
+        batches, n = temperature_batches()
+        temperature, info = fit_temperature(
+            step,
+            params,
+            batches,
+            num_batches=n,
+            place=place,
+            num_rotations=num_rotations,
+            desc=f"temperature fit ({eval_cfg.temperature_split})",
+        )
+        fit = {"split": eval_cfg.temperature_split, **info}
+    else:
+        temperature, fit = float(eval_cfg.temperature), None
+    t_fit = time.time() - t_fit
+    results = {}
+    figure_dir = os.path.join(output_dir, "figures", "sequential") if output_dir else None
+    for name in eval_cfg.tracked_splits():
+        t0 = time.time()
+        split = DriveSplit(
+            dataset_dir, name, map_variant, loader_cfg, threads=max(1, loader_cfg.num_threads)
+        )
+        t_index = time.time() - t0  # every record decoded once for its sequence metadata
+        try:
+            drives = split.drives[: eval_cfg.max_drives]
+            tracks, timing = track_split(
+                step,
+                params,
+                split,
+                drives,
+                cfg=cfg,
+                odometry_cfg=eval_cfg.odometry,
+                odometry_seed=eval_cfg.odometry_seed,
+                temperature=temperature,
+                batch_size=eval_cfg.batch_size,
+                place=place,
+                desc=f"sequential {name}",
+            )
+            summary = summarize(tracks)
+            if output_dir:
+                write_arrays(tracks, os.path.join(output_dir, "sequential", f"{name}.npz"))
+            if figure_dir and eval_cfg.num_figures:
+                write_figures(
+                    tracks, split, figure_dir, num_drives=eval_cfg.num_figures, channels=channels
+                )
+                if name == eval_cfg.calibration_split:
+                    viz.reliability_figure(
+                        os.path.join(figure_dir, "calibration.png"),
+                        MASSES,
+                        [summary["coverage"][f"{m:g}"] for m in MASSES],
+                        [summary["ellipse_coverage"][f"{m:g}"] for m in MASSES],
+                        title=f"calibration on {name} ({summary['frames']} frames, T = "
+                        f"{temperature:.3g})",
+                    )
+        finally:
+            split.close()
+        frames = timing["frames"]
+        per_frame = {
+            f"{k}_ms_per_frame": 1e3 * timing[f"{k}_s"] / frames if frames else None
+            for k in ("filter", "localize", "data")
+        }
+        summary.update(
+            temperature=temperature,
+            temperature_fit=fit,
+            temperature_fit_s=round(t_fit, 1),
+            calibration=name == eval_cfg.calibration_split,
+            **per_frame,
+            index_s=round(t_index, 1),
+            seconds=round(time.time() - t0, 1),
+        )
+        results[name] = summary
+    return results

@@ -1,0 +1,101 @@
+"""The likelihood temperature, fitted streaming on single frames (see the package docstring)."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from seglocnet_jax import geometry
+from seglocnet_jax.evaluation import LocalizeStep
+
+# Temperature grid: 8 points per decade over [1e-2, 1e5] (the raw volume sums ~1e4 terms); the
+# parabola through the best three points refines it to ~1 % on smooth objectives.
+TEMPERATURE_GRID = np.geomspace(1e-2, 1e5, 57)
+
+
+@jax.jit
+def _objective(volume, cells, weights, log_t):
+    """``(T,)`` sums over the batch of ``weights * log_softmax(volume / t)[cells]``."""
+    b, k_dim, h_dim, w_dim = volume.shape  # (B, K, 129, 129)
+    flat = volume.reshape(b, -1)
+    idx = (cells[:, 0] * h_dim + cells[:, 1]) * w_dim + cells[:, 2]
+    gt = jnp.take_along_axis(flat, idx[:, None], axis=1)[:, 0]  # (B,)
+
+    def one(lt):  # one temperature at a time: one (B, K*H*W) temporary
+        t = jnp.exp(lt)
+        return jnp.sum(weights * (gt / t - jax.nn.logsumexp(flat / t, axis=1)))
+
+    return jax.lax.map(one, log_t)
+
+
+class TemperatureFit:
+    """Streaming fit of the likelihood temperature: the ``T`` maximizing the mean
+    ``log_softmax(volume / T)[gt cell]`` (the very log-likelihood the filter is fed; the
+    objective of :func:`tracking.fit_temperature`), accumulated per batch on
+    :data:`TEMPERATURE_GRID` and refined by a parabola in ``log T`` through the best three grid
+    points. Memory: one batch of volumes at a time."""
+
+    def __init__(self, grid=TEMPERATURE_GRID):
+        self.log_t = np.log(np.asarray(grid, np.float64))
+        self.total = np.zeros(len(self.log_t))
+        self.count = 0
+        self.at_edge = False
+
+    def add(self, volume, cells, weights=None) -> None:
+        """``volume (B, K, H, W)`` (device or host), ``cells (B, 3)`` int GT cells, ``weights
+        (B,)`` (0 for rows to skip: padding, a GT outside the volume)."""
+        cells = np.asarray(cells, np.int32)
+        weights = np.ones(len(cells)) if weights is None else np.asarray(weights, np.float64)
+        out = _objective(
+            volume,
+            jnp.asarray(cells),
+            jnp.asarray(weights, jnp.float32),
+            jnp.asarray(self.log_t, jnp.float32),
+        )
+        self.total += np.asarray(out, np.float64)
+        self.count += int((weights > 0).sum())
+
+    def result(self) -> float:
+        if not self.count:
+            raise ValueError("no frame to fit the temperature on")
+        f = self.total / self.count
+        i = int(np.argmax(f))
+        # At the grid's edge the objective still rises beyond it (e.g. T -> 0 for the GT BEV,
+        # whose peak is always the GT cell): the edge is returned and flagged.
+        self.at_edge = i in (0, len(f) - 1)
+        if not self.at_edge:
+            denom = f[i - 1] - 2 * f[i] + f[i + 1]
+            step = self.log_t[1] - self.log_t[0]
+            offset = 0.5 * (f[i - 1] - f[i + 1]) / denom if denom < 0 else 0.0
+            return float(math.exp(self.log_t[i] + float(np.clip(offset, -1, 1)) * step))
+        return float(math.exp(self.log_t[i]))
+
+
+def gt_cells(pose_tile, num_rotations: int) -> tuple[np.ndarray, np.ndarray]:
+    """GT cells ``(B, 3)`` int of tile-frame GT poses and whether each lies in the volume."""
+    cell = np.round(geometry.pose_to_cell(np.asarray(pose_tile, np.float64), num_rotations))
+    cell = cell.astype(np.int64)
+    cell[:, 0] %= num_rotations
+    n = geometry.SCORE_SIZE
+    inside = (cell[:, 1:] >= 0).all(1) & (cell[:, 1:] < n).all(1)
+    return np.clip(cell, 0, [num_rotations - 1, n - 1, n - 1]), inside
+
+
+def fit_temperature(
+    step: LocalizeStep, params, batches, *, num_batches: int, place, num_rotations: int, desc: str
+) -> tuple[float, int]:
+    """Fits the temperature on ``num_batches`` evaluation batches (stored priors, single
+    frames); returns ``(T, {"frames": used, "at_grid_edge": bool})``."""
+    fit = TemperatureFit()
+    for i, batch in enumerate(tqdm(batches, total=num_batches, desc=desc, unit="batch")):
+        if i >= num_batches:
+            break
+        valid = np.asarray(batch.get("valid", np.ones(len(batch["pose"]), bool)), bool)
+        cells, inside = gt_cells(batch["pose_tile"], num_rotations)
+        out = step(params, place(batch), volume=True)
+        fit.add(out["volume"], cells, valid & inside)
+    return fit.result(), {"frames": fit.count, "at_grid_edge": fit.at_edge}
