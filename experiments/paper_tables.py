@@ -88,9 +88,13 @@ IOU = ("IoU_road", "IoU_building")
 SINGLE_FRAME = "eval.mode=single"
 
 
-def job_overrides(job: Job, budget: str, extra=(), root: str | None = None) -> list[str]:
+def job_overrides(
+    job: Job, budget: str, extra=(), root: str | None = None, *, single: bool = True
+) -> list[str]:
+    """The job's command-line overrides; ``single=False`` leaves out :data:`SINGLE_FRAME` (the
+    run directory does not depend on it, and a checkout older than ``eval.mode`` lacks it)."""
     out = [*job.overrides, f"+budget={budget}", *extra]
-    if job.name != "hd" and not any(o.startswith("eval.mode=") for o in out):
+    if single and job.name != "hd" and not any(o.startswith("eval.mode=") for o in out):
         out.append(SINGLE_FRAME)
     if root:
         out.append(f"hydra.run.dir={os.path.join(root, job.name)}")
@@ -109,7 +113,8 @@ def run_dir(job: Job, budget: str, extra=(), root: str | None = None) -> str:
     hydra_glue.register_resolvers()
     name = "config" if job.app == "train" else "evaluate"
     with initialize_config_dir(config_dir=hydra_glue.conf_dir(), version_base="1.3"):
-        cfg = compose(name, job_overrides(job, budget, extra), return_hydra_config=True)
+        overrides = job_overrides(job, budget, extra, single=False)
+        cfg = compose(name, overrides, return_hydra_config=True)
         return str(OmegaConf.select(cfg, "hydra.run.dir"))
 
 
