@@ -180,11 +180,14 @@ def test_readout_credible_mass_is_the_credible_region_test():
     mode = tr.estimate(belief, cfg)["map_cell"]
     for cell in [(0, 4, 4), (1, 0, 8), (3, 7, 2), (2, 5, 5)]:
         pose = tr.cell_to_world(belief, np.array(cell, np.float32), cfg)
-        _, above = tracks._readout(belief, mode, pose, cfg)
+        _, above, log_p = tracks._readout(belief, mode, pose, cfg)
         for mass in (0.5, 0.9, 0.99):
             assert bool(above < mass) == bool(tr.in_credible_region(belief, np.array(cell), mass))
+        want = max(math.log(float(prob[cell])), tracks.LOG_P_FLOOR)
+        assert float(log_p) == pytest.approx(want, abs=1e-5)
     outside = tr.cell_to_world(belief, np.array([0.0, 4.0, 20.0], np.float32), cfg)
-    assert math.isinf(float(tracks._readout(belief, mode, outside, cfg)[1]))
+    _, above, log_p = tracks._readout(belief, mode, outside, cfg)
+    assert math.isinf(float(above)) and float(log_p) == pytest.approx(tracks.LOG_P_FLOOR)
 
 
 def test_readout_mode_is_the_solvers_refined_peak():
@@ -199,7 +202,7 @@ def test_readout_mode_is_the_solvers_refined_peak():
         belief = tr.init_belief(cfg, (10.0, 20.0))._replace(prob=jnp.asarray(prob, jnp.float32))
         mode = tr.estimate(belief, cfg)["map_cell"]
         np.testing.assert_array_equal(mode, peak)
-        pose, _ = tracks._readout(belief, mode, jnp.zeros(3), cfg)
+        pose, _, _ = tracks._readout(belief, mode, jnp.zeros(3), cfg)
         cell, _ = solver.decode_cell(jnp.log(jnp.asarray(prob, jnp.float32)))
         want = tr.cell_to_world(belief, cell, cfg)
         np.testing.assert_allclose(pose[:2], want[:2], atol=1e-4)
@@ -223,6 +226,7 @@ def test_summary_follows_the_documented_definitions():
         mean=filtered,
         cov_xy=np.tile(np.eye(2), (n, 1, 1)),
         above=np.where(err < 1.0, 0.3, np.inf),
+        log_p_gt=np.where(err < 1.0, -2.0, -5.0),
         lost=lost,
     )
     s = sequential.summarize([track])
@@ -233,6 +237,7 @@ def test_summary_follows_the_documented_definitions():
     assert d["losses_detected"] == 2 and d["losses_recovered"] == 1  # 11 within 10 frames: no
     assert s["tracked_pct"] == pytest.approx(100 * 15 / 30)
     assert s["drives_never_lost_pct"] == 0.0
+    assert s["mean_log_p_gt"] == pytest.approx((-2.0 * 15 - 5.0 * 15) / 30)
     assert s["coverage"]["0.5"] == s["coverage_90"] == pytest.approx(100 * 15 / 30)
     assert s["filtered"]["count"] == s["single"]["count"] == n
     assert s["single"]["APE"] == 0.0 and s["filtered"]["APE"] == pytest.approx(err.mean())
@@ -304,8 +309,22 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
     assert s["tracked_pct"] == 100.0 and s["filtered"]["R@2m"] == 100.0
     assert s["filtered"]["APE"] < 1.0 and s["filtered"]["R@5deg"] == 100.0
     assert s["drives_not_converged"] == 0 and s["losses_detected"] == 0
-    # Fitted on val single frames: eval.max_batches=1 batch of eval.batch_size=2.
-    assert s["temperature_fit"] == {"split": "val", "frames": 2, "at_grid_edge": False}
+    # Fitted on val single frames (eval.max_batches=1 batch of eval.batch_size=2), then chosen
+    # on the drives_val drives among T_single x eval.temperature_scales.
+    fit = s["temperature_fit"]
+    assert {k: fit[k] for k in ("split", "frames", "at_grid_edge")} == {
+        "split": "val",
+        "frames": 2,
+        "at_grid_edge": False,
+    }
+    table = fit["filter"]["candidates"]
+    assert fit["filter"]["split"] == "drives_val" and len(table) == 4
+    assert [row["scale"] for row in table] == [1.0, 4.0, 16.0, 64.0]
+    for row in table:
+        assert row["temperature"] == pytest.approx(fit["single_frame"] * row["scale"])
+    best = max(table, key=lambda row: row["mean_log_p_gt"])
+    assert s["temperature"] == best["temperature"]
+    assert s["mean_log_p_gt"] <= 0.0
     assert set(s["coverage"]) == {f"{m:g}" for m in sequential.MASSES}
     assert s["filter_ms_per_frame"] > 0 and sum(d["frames"] for d in s["per_drive"]) == s["frames"]
     assert evaluation.TRACE_COUNTS[key] - before == 1  # one program for every frame
@@ -343,6 +362,10 @@ def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, cap
         ({"sequential_splits": ["drives"]}, "eval.sequential_splits: split 'drives'"),
         ({"calibration_split": "kouvola"}, "eval.calibration_split: split 'kouvola'"),
         ({"temperature_split": "nowhere"}, "eval.temperature_split: split 'nowhere'"),
+        ({"temperature_drives": "kouvola"}, "eval.temperature_drives: split 'kouvola'"),
+        ({"temperature_scales": [4.0, 1.0]}, "eval.temperature_scales"),
+        ({"temperature_scales": [0.0, 1.0]}, "eval.temperature_scales"),
+        ({"tracker": {"outlier": 1.0}}, "outlier"),
         ({"mode": "video"}, "eval.mode"),
         ({"temperature": -1.0}, "eval.temperature"),
         ({"max_drives": 0}, "eval.max_drives"),
@@ -358,7 +381,7 @@ def test_sequential_config_errors_name_the_key(data_root, override, key):
     # A split the dataset lacks is fine when nothing sequential runs, or when T is fixed.
     if "sequential_splits" in override or "calibration_split" in override:
         build_experiment(_tree(data_root, mode="single", **override))
-    if "temperature_split" in override:
+    if "temperature_split" in override or "temperature_drives" in override:
         build_experiment(_tree(data_root, temperature=5.0, **override))
 
 

@@ -387,3 +387,24 @@ def test_fit_temperature_recovers_the_generating_temperature():
     assert abs(fitted / true_t - 1) < 0.15, fitted
     with pytest.raises(ValueError, match="inside"):
         tr.fit_temperature(volumes[:1], np.array([[0, 9, 0]]))
+
+
+def test_outlier_term_bounds_what_one_wrong_frame_does_to_a_locked_belief():
+    # A belief locked on the truth, then one frame whose likelihood peaks sharply 20 cells
+    # away (a look-alike street): the raw likelihood hands the belief to the wrong place, the
+    # robust one (a flat outlier term of weight 0.1) keeps it on the truth; a frame that
+    # agrees with the belief moves it the same either way.
+    truth, wrong = (4, 64, 64), (4, 64, 84)
+    for outlier, expect in ((0.0, wrong), (0.1, truth)):
+        cfg = tr.TrackerConfig(
+            num_rotations=K, outlier=outlier, lost_log_odds=0.0, lost_peak_mass=0.0
+        )
+        prob = _blob(cfg, truth, 1.0)
+        belief = tr.init_belief(cfg, (0.0, 0.0))._replace(prob=prob / prob.sum())
+        after, info = tr.update(belief, _blob(cfg, wrong, 60.0), cfg)
+        assert not bool(info["lost"])
+        np.testing.assert_array_equal(info["estimate"]["map_cell"], expect)
+        agree, _ = tr.update(belief, _blob(cfg, truth, 60.0), cfg)
+        np.testing.assert_array_equal(tr.estimate(agree, cfg)["map_cell"], truth)
+    with pytest.raises(ValueError, match="outlier"):
+        tr.TrackerConfig(outlier=1.0)

@@ -97,7 +97,13 @@ class EvalConfig:
       when not in ``sequential_splits``); None: none.
     temperature: likelihood temperature of the filter (None: fitted on
       ``temperature_split``).
-    temperature_split: split the temperature is fitted on (single frames, stored priors).
+    temperature_split: split the single-frame temperature is fitted on (stored priors).
+    temperature_drives: split whose drives choose the filter's temperature (None: the
+      single-frame one): they are tracked at the single-frame ``T`` times each of
+      ``temperature_scales`` and the ``T`` with the best mean log posterior of the GT cell is
+      kept. Consecutive frames of a drive see overlapping surroundings, so their errors are
+      correlated and the single-frame ``T`` counts the same evidence many times over.
+    temperature_scales: the factors tried (ascending, > 0).
     odometry: the vehicle's odometry noise (:class:`tracking.odometry.OdometryConfig`).
     tracker: :data:`TrackerSection`, the filter's motion-noise and track-loss settings.
     odometry_seed: seed of the simulated odometry noise (per drive: with its sequence id).
@@ -114,6 +120,8 @@ class EvalConfig:
     calibration_split: str | None = "drives_val"
     temperature: float | None = None
     temperature_split: str = "val"
+    temperature_drives: str | None = "drives_val"
+    temperature_scales: tuple[float, ...] = (1.0, 4.0, 16.0, 64.0)
     odometry: OdometryConfig = OdometryConfig()
     tracker: TrackerSection = TrackerSection()
     odometry_seed: int = 0
@@ -147,6 +155,14 @@ class EvalConfig:
         ):
             raise ValueError(
                 f"eval.temperature must be > 0 or null (fit it), got {self.temperature}"
+            )
+        scales = self.temperature_scales
+        if not scales or any(not (math.isfinite(v) and v > 0) for v in scales) or list(
+            scales
+        ) != sorted(set(scales)):
+            raise ValueError(
+                "eval.temperature_scales must be ascending distinct factors > 0, got "
+                f"{list(scales)}"
             )
         if self.max_drives is not None and self.max_drives < 1:
             raise ValueError(f"eval.max_drives must be >= 1 or null, got {self.max_drives}")

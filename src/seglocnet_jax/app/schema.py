@@ -226,12 +226,14 @@ def _check_sequential_splits(ev, splits: list[str]) -> None:
         wanted.append(("eval.calibration_split", ev.calibration_split))
     if ev.temperature is None:
         wanted.append(("eval.temperature_split", ev.temperature_split))
+        if ev.temperature_drives:
+            wanted.append(("eval.temperature_drives", ev.temperature_drives))
     for key, split in wanted:
         if split not in splits:
             raise ConfigError(
                 f"{key}: split {split!r} (eval.mode={ev.mode}) is not in the dataset's splits "
                 f"{splits}; name one of them, or set eval.mode=single"
-                + ("" if key != "eval.temperature_split" else " or a fixed eval.temperature")
+                + ("" if not key.startswith("eval.temperature") else " or a fixed eval.temperature")
             )
 
 

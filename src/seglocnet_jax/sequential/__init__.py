@@ -18,9 +18,14 @@ drive (``eval.odometry_seed`` and the sequence id), i.e. wheel / IMU odometry wi
 On the same frames the single-frame protocol runs too (each frame localized from its own stored
 prior tile, as ``evaluation.evaluate_split`` does), through the same step.
 
-The likelihood temperature ``T`` is fitted on single frames of a validation split
-(:class:`TemperatureFit`: the mean GT-cell log-likelihood accumulated per batch over a log grid
-of ``T``, then a parabola through the best three points; no volume is kept) unless it is given.
+The likelihood temperature ``T`` is fitted unless it is given: first on single frames of a
+validation split (:class:`TemperatureFit`: the mean GT-cell log-likelihood accumulated per
+batch over a log grid of ``T``, then a parabola through the best three points; no volume is
+kept), then, with ``eval.temperature_drives``, on validation drives
+(:func:`choose_filter_temperature`: the drives tracked at that ``T`` times each of
+``eval.temperature_scales``, the best mean log posterior of the GT cell kept). The single-frame
+fit treats every frame as independent evidence; along a drive the frames overlap, their errors
+are correlated, and the filter fed the single-frame ``T`` is overconfident.
 
 Per split (:func:`summarize`), with these definitions:
 
@@ -73,7 +78,12 @@ from seglocnet_jax.sequential.report import (
     write_arrays,
     write_figures,
 )
-from seglocnet_jax.sequential.temperature import TemperatureFit, fit_temperature, gt_cells
+from seglocnet_jax.sequential.temperature import (
+    TemperatureFit,
+    choose_filter_temperature,
+    fit_temperature,
+    gt_cells,
+)
 from seglocnet_jax.sequential.tracks import (
     Drive,
     DriveSplit,
@@ -96,6 +106,7 @@ __all__ = [
     "TemperatureFit",
     "gt_cells",
     "fit_temperature",
+    "choose_filter_temperature",
     "Drive",
     "DriveSplit",
     "Track",
@@ -144,7 +155,29 @@ def evaluate_sequential(
             num_rotations=num_rotations,
             desc=f"temperature fit ({eval_cfg.temperature_split})",
         )
-        fit = {"split": eval_cfg.temperature_split, **info}
+        fit = {"split": eval_cfg.temperature_split, **info, "single_frame": temperature}
+        if eval_cfg.temperature_drives:
+            name = eval_cfg.temperature_drives
+            split = DriveSplit(
+                dataset_dir, name, map_variant, loader_cfg, threads=max(1, loader_cfg.num_threads)
+            )
+            try:
+                temperature, table = choose_filter_temperature(
+                    step,
+                    params,
+                    split,
+                    split.drives[: eval_cfg.max_drives],
+                    base=temperature,
+                    scales=eval_cfg.temperature_scales,
+                    cfg=cfg,
+                    odometry_cfg=eval_cfg.odometry,
+                    odometry_seed=eval_cfg.odometry_seed,
+                    batch_size=eval_cfg.batch_size,
+                    place=place,
+                )
+            finally:
+                split.close()
+            fit["filter"] = {"split": name, "candidates": table}
     else:
         temperature, fit = float(eval_cfg.temperature), None
     t_fit = time.time() - t_fit

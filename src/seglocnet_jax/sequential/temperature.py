@@ -99,3 +99,58 @@ def fit_temperature(
         out = step(params, place(batch), volume=True)
         fit.add(out["volume"], cells, valid & inside)
     return fit.result(), {"frames": fit.count, "at_grid_edge": fit.at_edge}
+
+
+def choose_filter_temperature(
+    step: LocalizeStep,
+    params,
+    split,
+    drives,
+    *,
+    base: float,
+    scales,
+    cfg,
+    odometry_cfg,
+    odometry_seed: int,
+    batch_size: int,
+    place,
+) -> tuple[float, list[dict]]:
+    """The filter's temperature, chosen on validation drives: ``drives`` (of the
+    :class:`~seglocnet_jax.sequential.tracks.DriveSplit` ``split``) are tracked at
+    ``base * s`` for each scale ``s`` (the volume step only, no single-frame pass) and the
+    ``T`` with the best mean log posterior of the GT cell (the filter's log score, clamped at
+    ``tracks.LOG_P_FLOOR``: a proper score, so it rewards a posterior that is both sharp and
+    calibrated) is returned, with one row per candidate (``scale``, ``temperature``,
+    ``mean_log_p_gt``, ``tracked_pct``, ``R@1m``, ``coverage_90``)."""
+    from seglocnet_jax.sequential import report, tracks  # the drives' loop and numbers
+
+    table = []
+    for scale in scales:
+        t = float(base) * float(scale)
+        out, _ = tracks.track_split(
+            step,
+            params,
+            split,
+            drives,
+            cfg=cfg,
+            odometry_cfg=odometry_cfg,
+            odometry_seed=odometry_seed,
+            temperature=t,
+            batch_size=batch_size,
+            place=place,
+            desc=f"filter temperature {t:.3g} ({split.name})",
+            single=False,
+        )
+        s = report.summarize(out)
+        table.append(
+            {
+                "scale": float(scale),
+                "temperature": t,
+                "mean_log_p_gt": s["mean_log_p_gt"],
+                "tracked_pct": s["tracked_pct"],
+                "R@1m": s["filtered"]["R@1m"],
+                "coverage_90": s["coverage_90"],
+            }
+        )
+    best = max(table, key=lambda row: row["mean_log_p_gt"])
+    return best["temperature"], table

@@ -22,6 +22,11 @@ from seglocnet_jax.evaluation import TRACKER_MOTION_FIELDS, EvalConfig, Localize
 from seglocnet_jax.tracking import odometry as odometry_lib
 
 WARMUP_STEPS = 2  # lockstep steps left out of the per-frame timings (compilation)
+# The log posterior of the GT cell is clamped here (and is this outside the window): ~12 nats
+# below a uniform belief over the 4.3 M cells, so that one frame off the window does not
+# dominate a mean over a drive.
+LOG_P_FLOOR_P = 1e-12
+LOG_P_FLOOR = float(np.log(LOG_P_FLOOR_P))
 
 
 def tracker_config(eval_cfg: EvalConfig, num_rotations: int) -> tracking.TrackerConfig:
@@ -136,7 +141,8 @@ def _readout(belief: tracking.Belief, map_cell, gt_pose, cfg: tracking.TrackerCo
     posterior), as a world pose, and the posterior mass of the cells strictly more probable
     than the GT cell (inf when the GT is outside the window): the GT is in the credible region
     of mass ``m`` iff that mass is below ``m`` (``tracking.in_credible_region`` for every mass
-    at once)."""
+    at once), and the log posterior of the GT cell (:data:`LOG_P_FLOOR` at the least, and
+    outside the window)."""
     prob = belief.prob  # (K, N, N)
     k, h, w = map_cell[0], map_cell[1], map_cell[2]
     n_k, n = cfg.num_rotations, cfg.size
@@ -154,7 +160,8 @@ def _readout(belief: tracking.Belief, map_cell, gt_pose, cfg: tracking.TrackerCo
     inside = (gt[1] >= 0) & (gt[1] < n) & (gt[2] >= 0) & (gt[2] < n)
     p = prob[gt[0] % n_k, jnp.clip(gt[1], 0, n - 1), jnp.clip(gt[2], 0, n - 1)]
     above = jnp.sum(jnp.where(prob > p, prob, 0.0))
-    return pose, jnp.where(inside, above, jnp.inf)
+    log_p = jnp.where(inside, jnp.log(jnp.maximum(p, LOG_P_FLOOR_P)), LOG_P_FLOOR)
+    return pose, jnp.where(inside, above, jnp.inf), log_p
 
 
 @jax.jit
@@ -174,6 +181,7 @@ class Track:
     mean: np.ndarray  # (T, 3) posterior (x, y) mean and circular mean yaw
     cov_xy: np.ndarray  # (T, 2, 2) m^2
     above: np.ndarray  # (T,) posterior mass more probable than the GT cell (inf: outside)
+    log_p_gt: np.ndarray  # (T,) log posterior of the GT cell (clamped: LOG_P_FLOOR)
     lost: np.ndarray  # (T,) bool, the filter detected a track loss at this frame
 
 
@@ -203,11 +211,15 @@ def track_split(
     batch_size: int,
     place,
     desc: str,
+    single: bool = True,
 ) -> tuple[list[Track], dict]:
     """Tracks ``drives``, ``batch_size`` of them in lockstep (frame t of each in one batch of
     the localize step; a finished drive's slot takes the next one), and localizes the same
-    frames single-frame. Returns the tracks and timings (seconds, and the frames they cover:
-    all but the first ``WARMUP_STEPS`` lockstep steps, which compile)."""
+    frames single-frame (``single=False``: not; the tracks' ``single`` poses are then NaN).
+    Returns the tracks and timings (seconds, and the frames they cover:
+    all but the first ``WARMUP_STEPS`` lockstep steps, which compile). Fewer drives than
+    ``batch_size``: the batch is that many (no padded rows computed for nothing)."""
+    batch_size = max(1, min(batch_size, len(drives)))
     pending = collections.deque(drives)
     slots: list[_Slot | None] = [None] * batch_size
     done: dict[str, Track] = {}
@@ -250,11 +262,14 @@ def track_split(
             )
         t2 = time.perf_counter()
         pad = batch_size - len(active)  # repeat the first row: static shapes
-        single = step(params, place(_stack(rows + [rows[0]] * pad)))
+        if single:
+            one = step(params, place(_stack(rows + [rows[0]] * pad)))
+            pose_tile = np.asarray(jax.device_get(one["pose_tile"]), np.float64)
+        else:
+            pose_tile = np.full((batch_size, 3), np.nan)
         volume = step(params, place(_stack(filter_rows + [filter_rows[0]] * pad)), volume=True)
         log_lik = _log_likelihood(volume["volume"], temperature)  # (B, K, 129, 129)
         log_lik.block_until_ready()  # (dispatch is asynchronous: time the steps, not the filter)
-        pose_tile = np.asarray(jax.device_get(single["pose_tile"]), np.float64)
         t3 = time.perf_counter()
         for j, s in enumerate(active):
             slot = slots[s]
@@ -262,7 +277,9 @@ def track_split(
             gt = slot.drive.poses[slot.t]
             est = info["estimate"]
             slot.map_cell = est["map_cell"]
-            mode, above = _readout(slot.belief, est["map_cell"], jnp.asarray(gt, jnp.float32), cfg)
+            mode, above, log_p = _readout(
+                slot.belief, est["map_cell"], jnp.asarray(gt, jnp.float32), cfg
+            )
             est = jax.device_get(est)
             slot.out["filtered"].append(np.asarray(mode, np.float64))
             slot.out["single"].append(
@@ -271,6 +288,7 @@ def track_split(
             slot.out["mean"].append(np.asarray(est["mean_pose"], np.float64))
             slot.out["cov_xy"].append(np.asarray(est["cov_xy"], np.float64))
             slot.out["above"].append(float(above))
+            slot.out["log_p_gt"].append(float(log_p))
             slot.out["lost"].append(bool(info["lost"]))
             slot.t += 1
             if slot.t == len(slot.drive):

@@ -29,6 +29,10 @@ class TrackerConfig:
       kernel_radius: most half-width (cells, bins) of the blur kernels: a larger sigma is
         truncated; a smaller one uses fewer taps (out to 5.7 sigmas, see :func:`predict`).
       floor: weight of a uniform mixed into the prior at every update.
+      outlier: weight of a flat outlier term in each frame's likelihood: the update multiplies
+        the prior by ``(1 - outlier) L / sum L + outlier / n`` (``n`` cells), so one frame whose
+        peak is wrong (a look-alike street) moves a confident belief by at most a bounded
+        factor instead of taking it over; 0: the raw likelihood.
       lost_log_odds: nats; a loss when the CUSUM of the prior-vs-uniform log Bayes factor falls
         below ``-lost_log_odds`` (0 disables).
       lock_peak_mass: the filter locks on once the peak mass reaches this.
@@ -50,6 +54,7 @@ class TrackerConfig:
     sigma_yaw_per_rad: float = 0.05
     kernel_radius: int = 3
     floor: float = 1e-9
+    outlier: float = 0.0
     lost_log_odds: float = 10.0
     lock_peak_mass: float = 0.5
     lost_peak_mass: float = 0.05
@@ -68,6 +73,8 @@ class TrackerConfig:
             raise ValueError(f"kernel_radius must be >= 0, got {self.kernel_radius}")
         if not 0.0 <= self.floor < 1.0:
             raise ValueError(f"floor must be in [0, 1), got {self.floor}")
+        if not 0.0 <= self.outlier < 1.0:
+            raise ValueError(f"outlier must be in [0, 1), got {self.outlier}")
         for key in ("sigma_xy", "sigma_xy_per_m", "sigma_yaw", "sigma_yaw_per_rad"):
             if getattr(self, key) < 0:
                 raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")

@@ -68,10 +68,21 @@ def _reset_prior(cfg: TrackerConfig):
     return (g / g.sum()).astype(jnp.float32)
 
 
+def _likelihood(log_lik, cfg: TrackerConfig):
+    """The frame's likelihood over the cells, up to a constant: ``exp(log_lik - max)`` in
+    (0, 1], or with ``cfg.outlier`` > 0 the robust mixture ``(1 - outlier) L / mean L +
+    outlier`` (the normalized likelihood mixed with a flat outlier term, times ``n``)."""
+    lik = jnp.exp(log_lik - log_lik.max())  # (K, N, N) in (0, 1], max 1
+    if cfg.outlier <= 0:
+        return lik
+    mean = jnp.sum(lik, axis=(1, 2)).sum() / cfg.num_cells  # per slice first (XLA CPU)
+    return (1.0 - cfg.outlier) * lik / mean + cfg.outlier
+
+
 @functools.partial(jax.jit, static_argnames="cfg")
 def _update_kernel(belief: Belief, log_lik, cfg: TrackerConfig):
     n = cfg.num_cells
-    lik = jnp.exp(log_lik - log_lik.max())  # (K, N, N) in (0, 1], max 1
+    lik = _likelihood(log_lik, cfg)
     prior = (1.0 - cfg.floor) * belief.prob + cfg.floor / n  # the prior with the floor
     # Per slice: the unnormalized posterior's yaw marginal, whose sum is the evidence
     # z = (1 - floor) sum prior * L + floor * mean L (the prior sums to 1). The barrier keeps
@@ -98,7 +109,7 @@ def _update_kernel(belief: Belief, log_lik, cfg: TrackerConfig):
 
 @functools.partial(jax.jit, static_argnames="cfg")
 def _reset_kernel(belief: Belief, log_lik, cfg: TrackerConfig):
-    lik = jnp.exp(log_lik - log_lik.max())
+    lik = _likelihood(log_lik, cfg)
     post = _reset_prior(cfg)[None] * lik
     new = belief._replace(
         prob=post / post.sum(),
