@@ -118,13 +118,21 @@ def run_dir(job: Job, budget: str, extra=(), root: str | None = None) -> str:
         return str(OmegaConf.select(cfg, "hydra.run.dir"))
 
 
-def command(job: Job, budget: str, extra=(), root=None) -> list[str]:
+def command(job: Job, budget: str, extra=(), root=None, *, single: bool = True) -> list[str]:
     return [
         sys.executable,
         "-m",
         f"seglocnet_jax.{job.app}",
-        *job_overrides(job, budget, extra, root),
+        *job_overrides(job, budget, extra, root, single=single),
     ]
+
+
+def ran_command(job: Job, budget: str, res: dict) -> str:
+    """The command that made ``res`` (a run's results.json): without :data:`SINGLE_FRAME`
+    when its config has no ``eval.mode`` (a checkout older than that key, where single-frame
+    evaluation was all there was, ran the job without it)."""
+    has_mode = "mode" in ((res.get("config") or {}).get("eval") or {})
+    return shown(command(job, budget, single=has_mode))
 
 
 def shown(cmd: list[str]) -> str:
@@ -156,27 +164,32 @@ def _commit(cwd: str) -> str:
 
 
 def store_result(job: Job, budget: str, rdir: str, store: str) -> str:
-    """Copies ``<rdir>/results.json`` into ``<store>/<job>.json`` (atomic) with the job's command,
-    run directory and commit; an entry holding the same results is left as it is."""
+    """Copies ``<rdir>/results.json`` into ``<store>/<job>.json`` (atomic) with the command
+    that ran it (:func:`ran_command`), run directory and commit; an entry holding the same
+    results keeps its commit and run directory (only a command stored wrongly by an older
+    version of this script is corrected)."""
     with open(os.path.join(rdir, "results.json")) as f:
         res = json.load(f)
     path = os.path.join(store, f"{job.name}.json")
+    from seglocnet_jax import fileio
+
+    cmd = ran_command(job, budget, res)
     if os.path.exists(path):
         with open(path) as f:
             old = json.load(f)
-        if old.get("results") == res:
+        if old.get("results") == res:  # the same row: its commit and run directory stay
+            if old.get("command") != cmd:  # stored by an older version of this script
+                fileio.write_json_atomic(path, {**old, "command": cmd}, indent=1)
             return path
     entry = {
         "job": job.name,
         "budget": budget,
-        "command": shown(command(job, budget)),
+        "command": cmd,
         "run_dir": os.path.abspath(rdir),
         "commit": _commit(os.getcwd()),
         "stored_at": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "results": res,
     }
-    from seglocnet_jax import fileio
-
     os.makedirs(store, exist_ok=True)
     fileio.write_json_atomic(path, entry, indent=1)
     return path

@@ -104,3 +104,39 @@ def test_store_entry_of_another_job_is_refused(tmp_path):
     ):
         mod.load(mod.JOBS, "cpu", str(tmp_path))
     assert mod.load(mod.JOBS[:1], "cpu", str(tmp_path))["hd"]["results"] is None
+
+
+def test_stored_command_is_the_one_that_ran(tmp_path):
+    # A row run at a checkout older than eval.mode (its config has no such key) ran without
+    # eval.mode=single: the store says so, and re-storing corrects an entry that claimed it,
+    # keeping the entry's commit and run directory.
+    spec = importlib.util.spec_from_file_location("paper_tables", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("paper_tables", mod)
+    spec.loader.exec_module(mod)
+    job, rdir, store = mod.BY_NAME["sd"], tmp_path / "run", tmp_path / "store"
+    rdir.mkdir()
+    old = {"splits": {}, "config": {"eval": {"splits": ["test"]}}}
+    (rdir / "results.json").write_text(json.dumps(old))
+    store.mkdir()
+    wrong = "python -m seglocnet_jax.train map=sd +budget=cpu eval.mode=single"
+    (store / "sd.json").write_text(
+        json.dumps(
+            {
+                "job": "sd",
+                "budget": "cpu",
+                "command": wrong,
+                "commit": "abc",
+                "run_dir": "/elsewhere",
+                "results": old,
+            }
+        )
+    )
+    mod.store_result(job, "cpu", str(rdir), str(store))
+    entry = json.loads((store / "sd.json").read_text())
+    assert entry["command"] == "python -m seglocnet_jax.train map=sd +budget=cpu"
+    assert entry["commit"] == "abc" and entry["run_dir"] == "/elsewhere"
+    new = {"splits": {}, "config": {"eval": {"mode": "single"}}}
+    (rdir / "results.json").write_text(json.dumps(new))
+    mod.store_result(job, "cpu", str(rdir), str(store))
+    assert json.loads((store / "sd.json").read_text())["command"] == wrong
