@@ -157,9 +157,11 @@ class EvalConfig:
                 f"eval.temperature must be > 0 or null (fit it), got {self.temperature}"
             )
         scales = self.temperature_scales
-        if not scales or any(not (math.isfinite(v) and v > 0) for v in scales) or list(
-            scales
-        ) != sorted(set(scales)):
+        if (
+            not scales
+            or any(not (math.isfinite(v) and v > 0) for v in scales)
+            or list(scales) != sorted(set(scales))
+        ):
             raise ValueError(
                 "eval.temperature_scales must be ascending distinct factors > 0, got "
                 f"{list(scales)}"
