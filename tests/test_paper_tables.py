@@ -140,3 +140,26 @@ def test_stored_command_is_the_one_that_ran(tmp_path):
     (rdir / "results.json").write_text(json.dumps(new))
     mod.store_result(job, "cpu", str(rdir), str(store))
     assert json.loads((store / "sd.json").read_text())["command"] == wrong
+
+
+def test_findings_weigh_the_deciding_gap_against_the_seed_range():
+    spec = importlib.util.spec_from_file_location("paper_tables", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("paper_tables", mod)
+    spec.loader.exec_module(mod)
+
+    def row(r1):
+        return {"results": {"splits": {"test": {"R@1m": r1}}}}
+
+    data = {n: {"results": None} for n in mod.BY_NAME}
+    data.update(hd=row(54.0), road=row(47.0), building=row(44.0))
+    by_text = {f[0]: f for f in mod.findings(data)}
+    road = by_text["IV: drivable area alone beats buildings alone (R@1m)"]
+    assert road[1] is True and road[3] == "–"  # one seed: no spread to compare with
+    data["hd_seed1"] = row(59.0)  # seed range 5.0
+    by_text = {f[0]: f for f in mod.findings(data)}
+    road = by_text["IV: drivable area alone beats buildings alone (R@1m)"]
+    both = by_text["IV: both together best (R@1m: both, road, building)"]
+    assert road[1] is True and road[3] == "gap 3.0 ≤ seed range 5.0"
+    assert both[1] is True and both[3] == "gap 7.0 > seed range 5.0"
+    assert by_text["I: HD > SD > NM at R@1m (test)"][1] is None
