@@ -324,6 +324,9 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
         assert row["temperature"] == pytest.approx(fit["single_frame"] * row["scale"])
     best = max(table, key=lambda row: row["mean_log_p_gt"])
     assert s["temperature"] == best["temperature"]
+    edge = best["temperature"] in (table[0]["temperature"], table[-1]["temperature"])
+    assert fit["filter"]["at_scale_edge"] == edge
+    assert ("is at the edge of eval.temperature_scales" in out) == edge
     assert s["mean_log_p_gt"] <= 0.0
     assert set(s["coverage"]) == {f"{m:g}" for m in sequential.MASSES}
     assert s["filter_ms_per_frame"] > 0 and sum(d["frames"] for d in s["per_drive"]) == s["frames"]

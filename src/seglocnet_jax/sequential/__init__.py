@@ -177,7 +177,17 @@ def evaluate_sequential(
                 )
             finally:
                 split.close()
-            fit["filter"] = {"split": name, "candidates": table}
+            # The best at either end of the scales: the optimum may lie beyond them (flagged).
+            temps = [row["temperature"] for row in table]
+            edge = len(temps) > 1 and temperature in (temps[0], temps[-1])
+            if edge:
+                print(
+                    f"[seglocnet] warning: the filter temperature {temperature:.3g} is at the "
+                    f"edge of eval.temperature_scales {list(eval_cfg.temperature_scales)} on "
+                    f"{name}; the best may lie beyond them",
+                    flush=True,
+                )
+            fit["filter"] = {"split": name, "candidates": table, "at_scale_edge": edge}
     else:
         temperature, fit = float(eval_cfg.temperature), None
     t_fit = time.time() - t_fit
