@@ -117,9 +117,11 @@ def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
         out = {"pose_tile": jnp.zeros((b, 3))}
         if volume:
             tile_centres.append(np.asarray(batch["tile_center"][0]))
-            vol = np.zeros((b, K, 129, 129), np.float32)
+            n = batch["tile"].shape[-1] - geometry.BEV_SIZE + 1  # 257: the acquisition window
+            vol = np.zeros((b, K, n, n), np.float32)
             if int(batch["frame_index"][0]) == 0:  # a perfect first frame
-                cell = np.round(geometry.pose_to_cell(batch["pose_tile"][0], K)).astype(int)
+                pose_tile = batch["pose_tile"][0]
+                cell = np.round(geometry.pose_to_cell(pose_tile, K, size=n)).astype(int)
                 vol[0, cell[0] % K, cell[1], cell[2]] = 100.0
             out["volume"] = jnp.asarray(vol)
         return out
@@ -149,6 +151,74 @@ def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
     assert np.hypot(*(centres[1:] - dead[1:, :2]).T).max() < 1.5
     assert np.hypot(*(centres[-1] - drive.poses[-1, :2])) > truth_gap - 1.5
     assert not track.lost.any()
+    # The first frames in the acquisition window (384 px tile), narrowed once the box around
+    # the mode has held the mass for acquire_frames frames (from frame 0: the peak holds it).
+    n_wide = cfg.acquire_frames
+    assert track.acquiring[:n_wide].all() and not track.acquiring[n_wide:].any()
+    assert tile_centres and len(tile_centres) == len(drive)
+
+
+@pytest.mark.parametrize("acquire_size", [257, 0])
+def test_a_far_first_peak_loses_the_truth_only_without_the_acquisition_window(acquire_size):
+    """Frame 0's likelihood peaks 55 m from the truth, at the far side of the prior box, and
+    (more weakly) at the truth; every later frame peaks at the truth alone. The window follows
+    the mode: the 129-cell window drops the truth's cells at frame 0 and never finds it again;
+    the acquisition window keeps them, the truth wins from frame 2, and the filter narrows."""
+    drive = _straight_drive(n=12)
+    wrong = drive.priors[0] + [28.0, -20.0]  # inside the +-32 m box around the prior
+    assert np.hypot(*(wrong - drive.poses[0, :2])) > 50.0
+    odometry = tr.OdometryConfig(
+        scale_sigma=0.0, yaw_bias_sigma=0.0, yaw_scale_sigma=0.0, yaw_sigma=0.0
+    )
+    ev = evaluation.EvalConfig(
+        odometry=odometry,
+        tracker=evaluation.TrackerSection(
+            lost_log_odds=0.0, lost_peak_mass=0.0, lost_entropy=1.0, acquire_size=acquire_size
+        ),
+    )
+    cfg = sequential.tracker_config(ev, K)
+
+    def step(params, batch, figures=False, volume=False):
+        b = len(batch["pose"])
+        out = {"pose_tile": jnp.zeros((b, 3))}
+        if volume:
+            n = batch["tile"].shape[-1] - geometry.BEV_SIZE + 1
+            vol = np.zeros((b, K, n, n), np.float32)
+            for i in range(b):
+                pose_tile = np.asarray(batch["pose_tile"][i], np.float64)
+                peaks = [(pose_tile, 20.0)]
+                if int(batch["frame_index"][i]) == 0:
+                    off = wrong - np.asarray(batch["tile_center"][i])
+                    peaks.append((np.array([*off, pose_tile[2]]), 40.0))
+                for p, score in peaks:
+                    cell = np.round(geometry.pose_to_cell(p, K, size=n)).astype(int)
+                    if (0 <= cell[1:]).all() and (cell[1:] < n).all():
+                        vol[i, cell[0] % K, cell[1], cell[2]] = score
+            out["volume"] = jnp.asarray(vol)
+        return out
+
+    (track,), _ = sequential.track_split(
+        step,
+        None,
+        _FakeSplit(_raster(2), drive),
+        [drive],
+        cfg=cfg,
+        odometry_cfg=odometry,
+        odometry_seed=0,
+        temperature=1.0,
+        batch_size=1,
+        place=lambda b: b,
+        desc="far peak",
+    )
+    err = np.hypot(*(track.filtered[:, :2] - drive.poses[:, :2]).T)
+    assert err[0] > 50.0  # the first frame's mode is the far peak either way
+    if acquire_size:
+        assert err[2:].max() < 1.0, err
+        # narrowed once the box around the mode had held the mass for acquire_frames frames
+        assert track.acquiring[: cfg.acquire_frames].all() and not track.acquiring[-1]
+    else:
+        assert err[1:].min() > 20.0, err
+        assert not track.acquiring.any()
 
 
 # --------------------------------------------------------------------------- read-outs
@@ -228,6 +298,7 @@ def test_summary_follows_the_documented_definitions():
         above=np.where(err < 1.0, 0.3, np.inf),
         log_p_gt=np.where(err < 1.0, -2.0, -5.0),
         lost=lost,
+        acquiring=np.arange(n) < 6,
     )
     s = sequential.summarize([track])
     d = s["per_drive"][0]
@@ -240,6 +311,7 @@ def test_summary_follows_the_documented_definitions():
     assert s["mean_log_p_gt"] == pytest.approx((-2.0 * 15 - 5.0 * 15) / 30)
     assert s["coverage"]["0.5"] == s["coverage_90"] == pytest.approx(100 * 15 / 30)
     assert s["filtered"]["count"] == s["single"]["count"] == n
+    assert d["frames_acquiring"] == 6 and s["acquiring_pct"] == pytest.approx(20.0)
     assert s["single"]["APE"] == 0.0 and s["filtered"]["APE"] == pytest.approx(err.mean())
 
 
@@ -330,7 +402,10 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
     assert s["mean_log_p_gt"] <= 0.0
     assert set(s["coverage"]) == {f"{m:g}" for m in sequential.MASSES}
     assert s["filter_ms_per_frame"] > 0 and sum(d["frames"] for d in s["per_drive"]) == s["frames"]
-    assert evaluation.TRACE_COUNTS[key] - before == 1  # one program for every frame
+    # Two programs for every frame: the batch of 129-cell windows and one acquisition window
+    # (drive by drive), where each drive spends at least its first acquire_frames frames.
+    assert evaluation.TRACE_COUNTS[key] - before == 2
+    assert all(d["frames_acquiring"] >= 3 for d in s["per_drive"]) and s["acquiring_pct"] > 0
     assert "seq_test [hd_road-building, gt] drives_val filtered" in out
     assert "GT in 90% region (%)" in out and "[seglocnet] sequential evaluation:" in out
     figures = sorted(os.listdir(os.path.join(workdir, "figures", "sequential")))

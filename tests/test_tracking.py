@@ -133,6 +133,14 @@ def test_config_rejects_bad_values():
         tr.TrackerConfig(size=128)
     with pytest.raises(ValueError, match="floor"):
         tr.TrackerConfig(floor=1.0)
+    for bad in (129, 200, 101):  # not larger than size, even, smaller
+        with pytest.raises(ValueError, match="acquire_size"):
+            tr.TrackerConfig(acquire_size=bad)
+    with pytest.raises(ValueError, match="acquire_mass"):
+        tr.TrackerConfig(acquire_mass=0.0)
+    with pytest.raises(ValueError, match="acquire_frames"):
+        tr.TrackerConfig(acquire_frames=0)
+    assert tr.TrackerConfig(acquire_size=0).acquisition() is None
 
 
 # --------------------------------------------------------------------------- prediction
@@ -229,6 +237,35 @@ def test_recentre_drops_and_reports_the_mass_that_leaves():
     prob = np.asarray(moved.prob)
     np.testing.assert_allclose(prob.sum(), 1.0, atol=1e-5)
     assert (prob[:, -10:, :] == 0).all() and (prob[:, :, :3] == 0).all()  # cells that entered
+
+
+def test_acquisition_box_prior_and_narrowing_keep_the_world_poses():
+    wide = CFG.acquisition()
+    assert (wide.size, wide.tile_size, wide.acquire_size) == (257, 384, 0)
+    prior = (300.0, 200.0)
+    box = tr.init_belief(wide, prior, box=CFG.centre * CFG.resolution)  # the +-32 m prior box
+    p_xy = np.asarray(box.prob).sum(0)
+    inside = np.zeros_like(p_xy, bool)
+    inside[64:193, 64:193] = True  # the 129 central cells of the 257
+    assert (p_xy[~inside] == 0).all() and np.allclose(p_xy[inside], 1.0 / 129**2, rtol=1e-4)
+    # 0.9 at a peak, 0.1 at the wide window's corner (cut away); the peak 25 m south and 20 m
+    # east of the centre (the box centred on it), or near the wide window's edge (the box
+    # clipped inside the window: the peak is then off the new window's centre).
+    for cell, at_centre in (((5, 128 + 50, 128 + 40), True), ((9, 3, 250), False)):
+        prob = np.zeros((K, 257, 257), np.float32)
+        prob[cell] = 0.9
+        prob[(cell[0], 0, 0)] = 0.1
+        belief = box._replace(prob=np.asarray(prob))
+        before = np.asarray(tr.cell_to_world(belief, np.array(cell), wide))
+        narrowed, kept = tr.narrow(belief, wide, CFG)
+        new = np.asarray(narrowed.prob)
+        assert new.shape == (K, 129, 129) and abs(new.sum() - 1.0) < 1e-5
+        assert float(kept) == pytest.approx(0.9, abs=1e-6)
+        at = np.unravel_index(np.argmax(new), new.shape)
+        assert (at[1:] == (64, 64)) == at_centre, at
+        np.testing.assert_allclose(tr.cell_to_world(narrowed, np.array(at), CFG), before)
+    with pytest.raises(ValueError, match="narrow"):
+        tr.narrow(belief, CFG, wide)
 
 
 def test_flat_likelihood_follows_the_odometry():

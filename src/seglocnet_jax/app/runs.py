@@ -261,6 +261,7 @@ SEQUENTIAL_COLUMNS = (
     ("losses_detected", "losses detected", "{:d}"),
     ("losses_recovered", "recovered", "{:d}"),
     ("coverage_90", "GT in 90% region (%)", "{:.1f}"),
+    ("acquiring_pct", "in acquisition window (%)", "{:.1f}"),
     ("mean_log_p_gt", "log p(GT) (nats)", "{:.2f}"),
     ("temperature", "T", "{:.3g}"),
     ("filter_ms_per_frame", "filter ms/frame", "{:.1f}"),

@@ -130,9 +130,15 @@ def filter_tile(raster, belief: tracking.Belief, cfg: tracking.TrackerConfig):
 
 def start_belief(raster, prior_xy, cfg: tracking.TrackerConfig) -> tracking.Belief:
     """Frame 0's belief: uniform over the window around the coarse prior (the prior box) and
-    over yaw, on the lattice of the raster's pixel corners."""
+    over yaw, on the lattice of the raster's pixel corners. With an acquisition window
+    (``cfg.acquire_size``) the belief is that larger window's, uniform over the same box and
+    zero outside it."""
     grid = raster.grid
-    return tracking.init_belief(cfg, prior_xy, origin=(grid.x_min, grid.y_max))
+    wide = cfg.acquisition()
+    if wide is None:
+        return tracking.init_belief(cfg, prior_xy, origin=(grid.x_min, grid.y_max))
+    box = cfg.centre * cfg.resolution  # the cfg window's half-width: the prior box
+    return tracking.init_belief(wide, prior_xy, origin=(grid.x_min, grid.y_max), box=box)
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
@@ -183,6 +189,7 @@ class Track:
     above: np.ndarray  # (T,) posterior mass more probable than the GT cell (inf: outside)
     log_p_gt: np.ndarray  # (T,) log posterior of the GT cell (clamped: LOG_P_FLOOR)
     lost: np.ndarray  # (T,) bool, the filter detected a track loss at this frame
+    acquiring: np.ndarray  # (T,) bool, this frame was tracked in the acquisition window
 
 
 def _stack(rows: list[dict]) -> dict:
@@ -190,10 +197,13 @@ def _stack(rows: list[dict]) -> dict:
 
 
 class _Slot:
-    """One drive in flight in the lockstep batch."""
+    """One drive in flight in the lockstep batch; ``cfg`` is its window's (the acquisition
+    window's while ``wide``)."""
 
-    def __init__(self, drive: Drive, belief, odometry):
+    def __init__(self, drive: Drive, belief, odometry, cfg, wide: bool):
         self.drive, self.belief, self.odometry, self.t = drive, belief, odometry, 0
+        self.cfg, self.wide = cfg, wide
+        self.held = 0  # consecutive frames the acquisition window's box held acquire_mass
         self.map_cell = None  # (3,) of the last posterior
         self.out = collections.defaultdict(list)
 
@@ -218,8 +228,16 @@ def track_split(
     frames single-frame (``single=False``: not; the tracks' ``single`` poses are then NaN).
     Returns the tracks and timings (seconds, and the frames they cover:
     all but the first ``WARMUP_STEPS`` lockstep steps, which compile). Fewer drives than
-    ``batch_size``: the batch is that many (no padded rows computed for nothing)."""
+    ``batch_size``: the batch is that many (no padded rows computed for nothing).
+
+    With an acquisition window (``cfg.acquire_size``) each drive starts in it
+    (:func:`start_belief`); its frames go through the localize step one drive at a time (the
+    larger tile: a program of its own), and the drive narrows to ``cfg``'s window once the box
+    around the mode has held ``cfg.acquire_mass`` for ``cfg.acquire_frames`` frames in a row
+    (:func:`tracking.narrow`). A detected loss sends
+    the drive back to the acquisition window, uniform over the box around its last estimate."""
     batch_size = max(1, min(batch_size, len(drives)))
+    wide_cfg = cfg.acquisition()
     pending = collections.deque(drives)
     slots: list[_Slot | None] = [None] * batch_size
     done: dict[str, Track] = {}
@@ -235,7 +253,28 @@ def track_split(
                 odo = odometry_lib.simulate(
                     d.poses, d.timestamps, odometry_cfg, drive_seed(odometry_seed, d.sequence_id)
                 )
-                slots[s] = _Slot(d, start_belief(raster, d.priors[0], cfg), np.asarray(odo))
+                belief = start_belief(raster, d.priors[0], cfg)
+                wide = wide_cfg is not None
+                slots[s] = _Slot(d, belief, np.asarray(odo), wide_cfg if wide else cfg, wide)
+
+    def volumes(filter_rows, active):
+        """The log-likelihood volume of each active slot: the narrow ones in one padded batch,
+        each acquiring one on its own."""
+        out = {}
+        narrow = [j for j, s in enumerate(active) if not slots[s].wide]
+        if narrow:
+            rows = [filter_rows[j] for j in narrow]
+            rows += [rows[0]] * (batch_size - len(rows))  # static shapes
+            vol = step(params, place(_stack(rows)), volume=True)["volume"]
+            lik = _log_likelihood(vol, temperature)  # (B, K, N, N)
+            out.update({j: lik[i] for i, j in enumerate(narrow)})
+        for j, s in enumerate(active):
+            if slots[s].wide:
+                vol = step(params, place(_stack([filter_rows[j]])), volume=True)["volume"]
+                out[j] = _log_likelihood(vol, temperature)[0]
+        for v in out.values():  # dispatch is asynchronous: time the steps, not the filter
+            v.block_until_ready()
+        return out
 
     fill()
     while any(slots):
@@ -248,9 +287,9 @@ def track_split(
             slot = slots[s]
             if slot.t:  # the previous estimate's MAP cell saves predict a pass
                 slot.belief, _ = tracking.predict(
-                    slot.belief, slot.odometry[slot.t], cfg, map_cell=slot.map_cell
+                    slot.belief, slot.odometry[slot.t], slot.cfg, map_cell=slot.map_cell
                 )
-            tile, centre = filter_tile(split.rasters[slot.drive.city], slot.belief, cfg)
+            tile, centre = filter_tile(split.rasters[slot.drive.city], slot.belief, slot.cfg)
             pose = np.asarray(row["pose"], np.float64)
             filter_rows.append(
                 {
@@ -267,18 +306,16 @@ def track_split(
             pose_tile = np.asarray(jax.device_get(one["pose_tile"]), np.float64)
         else:
             pose_tile = np.full((batch_size, 3), np.nan)
-        volume = step(params, place(_stack(filter_rows + [filter_rows[0]] * pad)), volume=True)
-        log_lik = _log_likelihood(volume["volume"], temperature)  # (B, K, 129, 129)
-        log_lik.block_until_ready()  # (dispatch is asynchronous: time the steps, not the filter)
+        log_lik = volumes(filter_rows, active)
         t3 = time.perf_counter()
         for j, s in enumerate(active):
             slot = slots[s]
-            slot.belief, info = tracking.update(slot.belief, log_lik[j], cfg)
+            slot.belief, info = tracking.update(slot.belief, log_lik[j], slot.cfg)
             gt = slot.drive.poses[slot.t]
             est = info["estimate"]
             slot.map_cell = est["map_cell"]
             mode, above, log_p = _readout(
-                slot.belief, est["map_cell"], jnp.asarray(gt, jnp.float32), cfg
+                slot.belief, est["map_cell"], jnp.asarray(gt, jnp.float32), slot.cfg
             )
             est = jax.device_get(est)
             slot.out["filtered"].append(np.asarray(mode, np.float64))
@@ -290,6 +327,8 @@ def track_split(
             slot.out["above"].append(float(above))
             slot.out["log_p_gt"].append(float(log_p))
             slot.out["lost"].append(bool(info["lost"]))
+            slot.out["acquiring"].append(slot.wide)
+            _next_window(slot, bool(info["lost"]), cfg, wide_cfg, split.rasters[slot.drive.city])
             slot.t += 1
             if slot.t == len(slot.drive):
                 done[slot.drive.sequence_id] = Track(
@@ -307,3 +346,23 @@ def track_split(
         fill()
     bar.close()
     return [done[d.sequence_id] for d in drives], timing
+
+
+def _next_window(slot: _Slot, lost: bool, cfg, wide_cfg, raster) -> None:
+    """The window the slot's next frame is tracked in: the acquisition window narrows once the
+    box around the mode has held ``cfg.acquire_mass`` for ``cfg.acquire_frames`` frames in a
+    row; a detected loss goes back to it (uniform over the box around the window centre, the
+    last estimate; the loss count kept)."""
+    if wide_cfg is None:
+        return
+    if slot.wide:
+        belief, kept = tracking.narrow(slot.belief, wide_cfg, cfg)
+        slot.held = slot.held + 1 if float(kept) >= cfg.acquire_mass else 0
+        if slot.held >= cfg.acquire_frames:
+            slot.belief, slot.cfg, slot.wide, slot.held = belief, cfg, False, 0
+            slot.map_cell = None  # the next predict finds the mode in the new window
+    elif lost:
+        losses = slot.belief.losses
+        belief = start_belief(raster, tracking.window_centre(slot.belief, cfg), cfg)
+        slot.belief, slot.cfg, slot.wide = belief._replace(losses=losses), wide_cfg, True
+        slot.map_cell = None

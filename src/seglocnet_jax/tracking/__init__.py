@@ -34,6 +34,11 @@ One frame of a drive::
   uniform prior did" (``log sum prior * L - log mean L``), plus belief-shape tests (peak mass,
   entropy) once the filter has locked on. A loss re-widens the prior (uniform, or a Gaussian
   around the last estimate) and reapplies the frame's likelihood; losses are counted.
+* acquisition (``acquire_size``): the first frames, and those after a detected loss, run in a
+  larger window (257 x 257 cells, a 384-pixel tile) whose prior is the coarse prior's box
+  (uniform over the ``size`` window around it, zero outside). A first peak at the far side of
+  the box then moves the window onto it without losing the truth's cells; :func:`narrow` cuts
+  the belief to the ``size`` window around its mode once that box holds ``acquire_mass``.
 * odometry (:mod:`~seglocnet_jax.tracking.odometry`): the motion between frames as wheel
   odometry + a MEMS gyro measure it (:func:`simulate`), dead reckoning (:func:`compose`) and
   the filter's motion noise that covers it (:func:`tracker_noise`).
@@ -59,7 +64,7 @@ from seglocnet_jax.tracking.belief import (
     window_centre,
     world_to_cell,
 )
-from seglocnet_jax.tracking.motion import predict, recentre
+from seglocnet_jax.tracking.motion import narrow, predict, recentre
 from seglocnet_jax.tracking.odometry import (
     OdometryConfig,
     compose,
@@ -79,6 +84,7 @@ __all__ = [
     "cell_to_world",
     "predict",
     "recentre",
+    "narrow",
     "update",
     "estimate",
     "in_credible_region",

@@ -42,6 +42,15 @@ class TrackerConfig:
       peak_radius: m; the peak mass is the posterior mass within this (box) of the MAP (x, y).
       recover_sigma: m; the prior after a loss: a Gaussian of this sigma around the window
         centre (the last estimate), uniform over yaw; 0 means uniform over the window.
+      acquire_size: cells per axis of the *acquisition window* (odd, > ``size``; 0: none): the
+        first frames (and the frames after a detected loss) are tracked in this larger window,
+        the prior uniform over the ``size`` box around the coarse prior, so that a first peak
+        at the far side of the box drags the window away without losing the truth's cells.
+        Its tile is ``acquire_size - 1 + bev_size`` pixels (384 for 257).
+      acquire_mass, acquire_frames: the filter leaves the acquisition window (:func:`narrow`)
+        once the ``size`` box around the mode has held at least ``acquire_mass`` of the belief
+        for ``acquire_frames`` consecutive frames (one confident frame may be confidently
+        wrong: a look-alike street at the far side of the box).
     """
 
     num_rotations: int = geometry.NUM_ROTATIONS
@@ -61,6 +70,9 @@ class TrackerConfig:
     lost_entropy: float = 0.9
     peak_radius: float = 2.0
     recover_sigma: float = 0.0
+    acquire_size: int = 2 * geometry.SCORE_SIZE - 1
+    acquire_mass: float = 0.99
+    acquire_frames: int = 3
 
     def __post_init__(self):
         if self.num_rotations < 1:
@@ -80,6 +92,21 @@ class TrackerConfig:
                 raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")
         if self.lost_log_odds < 0 or self.recover_sigma < 0 or self.peak_radius < 0:
             raise ValueError("lost_log_odds, recover_sigma and peak_radius must be >= 0")
+        if self.acquire_size and (self.acquire_size <= self.size or self.acquire_size % 2 == 0):
+            raise ValueError(
+                f"acquire_size must be 0 (no acquisition window) or odd and > size "
+                f"({self.size}), got {self.acquire_size}"
+            )
+        if not 0.0 < self.acquire_mass <= 1.0:
+            raise ValueError(f"acquire_mass must be in (0, 1], got {self.acquire_mass}")
+        if self.acquire_frames < 1:
+            raise ValueError(f"acquire_frames must be >= 1, got {self.acquire_frames}")
+
+    def acquisition(self) -> TrackerConfig | None:
+        """The config of the acquisition window (``size = acquire_size``; None without one)."""
+        if not self.acquire_size:
+            return None
+        return dataclasses.replace(self, size=self.acquire_size, acquire_size=0)
 
     @property
     def centre(self) -> int:
@@ -136,6 +163,7 @@ def init_belief(
     sigma: float | None = None,
     yaw: float | None = None,
     yaw_sigma: float | None = None,
+    box: float | None = None,
 ) -> Belief:
     """The belief before the first frame, its window centred on the prior ``xy`` (world m)
     snapped to the nearest lattice corner.
@@ -146,6 +174,8 @@ def init_belief(
         the lattice on a raster's pixel corners.
       sigma: m; ``None``: uniform over the window, else a Gaussian around ``xy``.
       yaw, yaw_sigma: rad; a wrapped Gaussian over yaw (``None``: uniform).
+      box: m; zero outside the square of this half-width around the window centre (``None``:
+        the whole window), e.g. the prior box inside an acquisition window.
     """
     x, y = (float(v) for v in xy)
     ox, oy = (float(v) for v in origin)
@@ -157,6 +187,11 @@ def init_belief(
     if sigma is not None:
         ex, ey = cx + dx[None, :] - x, cy + dy[:, None] - y
         log_xy = -0.5 * (ex**2 + ey**2) / max(sigma, 1e-6) ** 2
+    if box is not None:
+        outside = (np.abs(dx)[None, :] > box + 1e-6) | (np.abs(dy)[:, None] > box + 1e-6)
+        if outside.all():
+            raise ValueError(f"box {box} m holds no cell of the window")
+        log_xy = np.where(outside, -np.inf, log_xy)
     log_k = np.zeros(cfg.num_rotations)
     if yaw is not None:
         yaws = geometry.yaw_from_rotation(np.arange(cfg.num_rotations), cfg.num_rotations)

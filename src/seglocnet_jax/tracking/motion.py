@@ -230,3 +230,34 @@ def recentre(belief: Belief, shift, cfg: TrackerConfig) -> tuple[Belief, jax.Arr
     prob, mass = _cols_kernel(rows, jnp.full((k_dim,), -shift[1]), none, 0)
     prob = prob / jnp.maximum(mass, 1e-30)
     return belief._replace(prob=prob, centre=belief.centre + shift), 1.0 - mass
+
+
+@functools.partial(jax.jit, static_argnames=("wide", "cfg"))
+def _narrow_kernel(prob, centre, wide: TrackerConfig, cfg: TrackerConfig):
+    k_dim, n_wide, _ = prob.shape
+    cell = _map_cell(prob)
+    half = cfg.centre
+    # The size x size box around the mode, clipped into the wide window (a mode near its edge
+    # keeps the box inside: the window centre is then not the mode, as after any clipped move).
+    top = jnp.clip(cell[1:] - half, 0, n_wide - cfg.size)
+    box = jax.lax.dynamic_slice(prob, (0, top[0], top[1]), (k_dim, cfg.size, cfg.size))
+    mass = box.sum(axis=(1, 2)).sum()  # per slice first (XLA CPU)
+    move = top + half - wide.centre
+    return box / jnp.maximum(mass, 1e-30), centre + move.astype(jnp.int32), mass
+
+
+def narrow(belief: Belief, wide: TrackerConfig, cfg: TrackerConfig) -> tuple[Belief, jax.Array]:
+    """The belief of the acquisition window ``wide`` cut to the ``cfg`` window around its mode
+    (``wide.size`` > ``cfg.size``, same lattice): returns the renormalized belief and the mass
+    it kept (the tracker narrows once that reaches ``cfg.acquire_mass``). The world pose of
+    every kept cell is unchanged."""
+    if wide.size <= cfg.size or (wide.num_rotations, wide.resolution, wide.bev_size) != (
+        cfg.num_rotations,
+        cfg.resolution,
+        cfg.bev_size,
+    ):
+        raise ValueError(
+            f"narrow needs a wider window of the same lattice and K: {wide.size} -> {cfg.size}"
+        )
+    prob, centre, mass = _narrow_kernel(belief.prob, belief.centre, wide, cfg)
+    return belief._replace(prob=prob, centre=centre), mass
