@@ -6,6 +6,9 @@ estimate too) on a ``(K, 129, 129)`` belief (K = 256 by default) tracking a synt
 peaked likelihood at the true cell plus distractors and noise; making it is not timed).
 Predict gets the MAP cell of the estimate the previous update returned, as a filter loop
 has it (``--map-cell computed``: predict finds it itself, one more pass over the volume).
+``--window acquisition``: the same frame on the acquisition window (``TrackerConfig.
+acquisition()``, 257 x 257 cells: the first frames of a drive and those after a loss), plus the
+:func:`tracking.narrow` test every such frame runs (``narrow_ms``, not part of the frame).
 
 Milliseconds per frame (compile excluded; median and best over the frames) and per stage
 (``estimate_ms``: a standalone :func:`tracking.estimate`, not part of the frame), wall clock
@@ -15,6 +18,7 @@ figure depends on what else runs on the CPU. Progress goes to stderr; the last s
 JSON.
 
     python experiments/bench_tracking.py [--num-rotations 256] [--frames 20] [--map-cell given]
+        [--window tracking|acquisition]
 """
 
 from __future__ import annotations
@@ -53,13 +57,16 @@ def _block(tree):
     return jax.block_until_ready(tree)
 
 
-def bench(num_rotations: int, frames: int, seed: int = 0, map_cell: str = "given") -> dict:
-    cfg = tracking.TrackerConfig(num_rotations=num_rotations)
+def bench(
+    num_rotations: int, frames: int, seed: int = 0, map_cell: str = "given", window="tracking"
+) -> dict:
+    base = tracking.TrackerConfig(num_rotations=num_rotations)
+    cfg = base.acquisition() if window == "acquisition" else base
     rng = np.random.default_rng(seed)
     step = np.array([2.0, 0.1, 0.02])  # m forward, m left, rad per frame
     pose = np.array([500.0, 500.0, 0.3])
     belief = tracking.init_belief(cfg, pose[:2] + 5.0)
-    stages = ("predict", "update", "estimate", "frame")
+    stages = ("predict", "update", "estimate", "frame") + (("narrow",) if cfg is not base else ())
     wall = {key: [] for key in stages}
     cpu = {key: [] for key in stages}
     cell = None
@@ -76,6 +83,9 @@ def bench(num_rotations: int, frames: int, seed: int = 0, map_cell: str = "given
         t3 = clock()
         _block(tracking.estimate(belief, cfg))
         t4 = clock()
+        if cfg is not base:
+            _block(tracking.narrow(belief, cfg, base))
+        t5 = clock()
         est = info["estimate"]
         cell = est["map_cell"] if map_cell == "given" else None
         if i >= 2:
@@ -83,7 +93,7 @@ def bench(num_rotations: int, frames: int, seed: int = 0, map_cell: str = "given
                 ("predict", (t0, t1)),
                 ("update", (t2, t3)),
                 ("estimate", (t3, t4)),
-            ):
+            ) + ((("narrow", (t4, t5)),) if cfg is not base else ()):
                 wall[key].append(1000 * (b[0] - a[0]))
                 cpu[key].append(1000 * (b[1] - a[1]))
             wall["frame"].append(wall["predict"][-1] + wall["update"][-1])
@@ -91,7 +101,7 @@ def bench(num_rotations: int, frames: int, seed: int = 0, map_cell: str = "given
         err = float(np.hypot(*(np.asarray(est["map_pose"][:2]) - pose[:2])))
         ms = 1000 * ((t1[0] - t0[0]) + (t3[0] - t2[0]))
         print(f"frame {i}: {ms:.1f} ms, error {err:.2f} m", file=sys.stderr, flush=True)
-    result = {"num_rotations": num_rotations, "size": cfg.size, "frames": frames}
+    result = {"num_rotations": num_rotations, "window": window, "size": cfg.size, "frames": frames}
     result["map_cell"] = map_cell
     for key in stages:
         result[f"{key}_ms"] = round(float(np.median(wall[key])), 2)
@@ -113,10 +123,16 @@ def main(argv=None) -> None:
         default="given",
         help="predict gets the previous estimate's MAP cell, or computes it",
     )
+    parser.add_argument(
+        "--window",
+        choices=("tracking", "acquisition"),
+        default="tracking",
+        help="the 129-cell tracking window or the 257-cell acquisition window",
+    )
     args = parser.parse_args(argv)
     print(f"devices: {jax.devices()}", file=sys.stderr)
     load_before = os.getloadavg()[0]
-    result = bench(args.num_rotations, args.frames, map_cell=args.map_cell)
+    result = bench(args.num_rotations, args.frames, map_cell=args.map_cell, window=args.window)
     result.update(
         device=str(jax.devices()[0].platform),
         cpu_count=os.cpu_count(),
