@@ -1,5 +1,6 @@
 """The paper's tables on the embedded benchmark: run the set, then collect it into
-``docs/results.md`` with one figure per table.
+``docs/results.md`` with one figure per table (the tables, figures and findings:
+``experiments/paper_report.py``).
 
     python experiments/paper_tables.py run budget=cpu      # every job; resumable, finished: skipped
     python experiments/paper_tables.py collect budget=cpu  # docs/results.md + docs/results_*.png
@@ -25,7 +26,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import os
 import shlex
 import subprocess
@@ -34,6 +34,13 @@ import time
 from datetime import UTC, datetime
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
+_HERE = os.path.dirname(os.path.abspath(__file__))
+if _HERE not in sys.path:  # loaded by path (the tests): its sibling module is importable too
+    sys.path.insert(0, _HERE)
+
+from paper_report import PAPER, collect, findings, seed_range  # noqa: E402
+
+__all__ = ["JOBS", "BY_NAME", "PAPER", "run", "load", "collect", "findings", "seed_range"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,24 +67,6 @@ JOBS = (
     Job("hd_seed2", "train", ("train.seed=2",)),
 )
 BY_NAME = {j.name: j for j in JOBS}
-
-# The paper's numbers quoted by the project's tracker (nuScenes for Table I; Argoverse Miami ->
-# Pittsburgh for III; Argoverse Miami for IV and V). None: not quoted.
-PAPER = {
-    "I": {
-        "hd": {"R@1m": 59.1},
-        "sd": {"R@1m": 35.6, "R@5m": 74.6},
-        "nm": {"R@1m": 48.2, "R@5m": 61.6},
-        "gt_hd": {"R@1m": 89.3},
-        "gt_sd": {"R@1m": 91.4},
-    },
-    "III": {"hd": (55.9, 55.7), "sd": (48.4, 33.0), "nm": (43.7, 9.6)},
-    "IV": {"road": {"R@1m": 42.5}, "building": {"R@1m": 37.4}, "hd": {"R@1m": 55.9}},
-    "V": {"sd_w2.5": {"R@5m": 75.2}, "sd_w5": {"R@5m": 76.9}, "sd": {"R@5m": 80.3}},
-}
-COLS = ("R@1m", "R@2m", "R@5m", "R@10m", "R@1deg", "R@2deg", "R@5deg", "R@10deg", "APE", "AOE")
-HEAD = {c: c.replace("deg", "°") for c in COLS}
-IOU = ("IoU_road", "IoU_building")
 
 
 # --------------------------------------------------------------------------- running
@@ -221,9 +210,6 @@ def run(jobs, budget: str, extra=(), root=None, store: str | None = None) -> int
     return failed
 
 
-# --------------------------------------------------------------------------- collecting
-
-
 def load(jobs, budget: str, store: str | None = None) -> dict:
     """``{job name: {"results", "dir", "command", "commit"}}`` from the store (results None
     when the job has no entry). An entry of another job or budget is an error naming it."""
@@ -247,287 +233,6 @@ def load(jobs, budget: str, store: str | None = None) -> dict:
             "commit": entry.get("commit"),
         }
     return out
-
-
-def _num(res, split, key):
-    try:
-        v = res["results"]["splits"][split][key]
-    except (KeyError, TypeError):
-        return None
-    return None if v is None or (isinstance(v, float) and math.isnan(v)) else float(v)
-
-
-def _cell(v, digits=1):
-    return "–" if v is None else f"{v:.{digits}f}"
-
-
-def _wall(res) -> str:
-    r = res["results"] or {}
-    t = (r.get("time") or {}).get("total_s")
-    return "–" if t is None else f"{t / 60:.1f} min"
-
-
-def _row_table(title, rows, data, split, paper=None, paper_label="paper"):
-    """A paper-layout table: one row per job on ``split`` (+ IoU, wall time, command)."""
-    head = ["Method", *(HEAD[c] for c in COLS), *IOU, "wall", "command"]
-    lines = [f"**{title}**", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for label, name in rows:
-        d = data[name]
-        vals = [_cell(_num(d, split, c), 2 if c in ("APE", "AOE") else 1) for c in COLS]
-        ious = [_cell(_num(d, split, c)) for c in IOU]
-        cmd = f"`{d['command']}`"
-        if d.get("commit"):
-            cmd += f" @{d['commit'][:7]}{'+dirty' if d['commit'].endswith('+dirty') else ''}"
-        if d["results"] is None:
-            vals, ious, cmd = ["not run"] + ["–"] * (len(COLS) - 1), ["–"] * 2, cmd
-        lines.append(f"| {label} | " + " | ".join([*vals, *ious, _wall(d), cmd]) + " |")
-        if paper and name in paper:
-            p = paper[name]
-            pv = [_cell(p.get(c)) if isinstance(p, dict) else "–" for c in COLS]
-            lines.append(f"| ↳ {paper_label} | " + " | ".join([*pv, "–", "–", "–", ""]) + " |")
-    prior = next((data[n] for _, n in rows if data[n]["results"]), None)
-    if prior:
-        p = prior["results"]["splits"].get(split, {}).get("prior", {})
-        pv = [_cell(p.get(c)) for c in COLS]
-        lines.append("| prior alone (tile centre) | " + " | ".join([*pv, "–", "–", "", ""]) + " |")
-    return "\n".join(lines)
-
-
-def _figure(path, title, groups, data, split):
-    """Grouped bars of R@1m / R@5m / R@1° per row."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    metrics = ("R@1m", "R@5m", "R@1deg")
-    labels = [label.replace(", ", ",\n").replace(" (", "\n(") for label, _ in groups]
-    fig, ax = plt.subplots(figsize=(1.6 + 1.2 * len(groups), 3.4), dpi=100)
-    x = np.arange(len(groups))
-    for g, (_, name) in enumerate(groups):
-        if data[name]["results"] is None:  # not measured: say so, never draw a zero
-            ax.text(x[g], 4, "not run", ha="center", fontsize=8, color="0.4")
-    for i, m in enumerate(metrics):
-        vals = [_num(data[n], split, m) for _, n in groups]
-        xs = [x[g] + (i - 1) * 0.27 for g, v in enumerate(vals) if v is not None]
-        bars = ax.bar(xs, [v for v in vals if v is not None], 0.27, label=HEAD[m])
-        ax.bar_label(bars, fmt="%.0f", fontsize=7)
-    ax.set_xticks(x, labels, fontsize=8)
-    ax.set_ylim(0, 112)
-    ax.set_ylabel("recall (%)")
-    ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.28), frameon=False)
-    fig.tight_layout()
-    tmp = path + ".tmp.png"
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, path)
-
-
-def seed_range(data) -> float | None:
-    """Max - min test R@1m over the HD row's measured seeds (None: fewer than two)."""
-    seeds = [_num(data[n], "test", "R@1m") for n in ("hd", "hd_seed1", "hd_seed2") if n in data]
-    seeds = [v for v in seeds if v is not None]
-    return max(seeds) - min(seeds) if len(seeds) >= 2 else None
-
-
-def findings(data) -> list[tuple[str, bool | None, str, str]]:
-    """``(finding, holds (None: not measurable yet), measured, against the spread)`` per paper
-    finding. The last: whether the gap that decides the finding (the smallest difference its
-    comparison rests on) exceeds the HD row's seed range (max - min test R@1m over its seeds;
-    "–" with fewer than two seeds or for a finding that is not a plain ordering)."""
-
-    def r(name, key="R@1m", split="test"):
-        return _num(data[name], split, key) if name in data else None
-
-    out = []
-    spread = seed_range(data)
-
-    def add(text, values, check, gap=None):
-        if any(v is None for v in values):
-            out.append((text, None, "not all rows measured", "–"))
-            return
-        margin = "–"
-        if gap is not None and spread is not None:
-            g = abs(gap(*values))
-            margin = f"gap {g:.1f} {'>' if g > spread else '≤'} seed range {spread:.1f}"
-        out.append((text, bool(check(*values)), " / ".join(f"{v:.1f}" for v in values), margin))
-
-    seeds = [r(n) for n in ("hd", "hd_seed1", "hd_seed2")]
-    add(
-        "I: HD > SD > NM at R@1m (test)",
-        [r("hd"), r("sd"), r("nm")],
-        lambda a, b, c: a > b > c,
-        lambda a, b, c: min(a - b, b - c, key=abs),
-    )
-    add(
-        "I: NM behind SD at R@5m (test)",
-        [r("nm", "R@5m"), r("sd", "R@5m")],
-        lambda a, b: a < b,
-    )
-    add(
-        "I: GT rows far above every trained one (R@1m test: GT-HD, GT-SD, best trained)",
-        [
-            r("gt_hd"),
-            r("gt_sd"),
-            max([v for v in (r("hd"), r("sd"), r("nm")) if v is not None], default=None),
-        ],
-        lambda a, b, c: min(a, b) > c + 10,
-    )
-    add(
-        "III: HD and SD keep most accuracy on the unseen city (R@1m Kouvola / test)",
-        [r("hd", split="kouvola"), r("hd"), r("sd", split="kouvola"), r("sd")],
-        lambda a, b, c, d: a > 0.5 * b and c > 0.5 * d,
-    )
-    add(
-        "III: NM collapses on the unseen city (R@1m Kouvola / test)",
-        [r("nm", split="kouvola"), r("nm")],
-        lambda a, b: a < 0.5 * b,
-    )
-    add(
-        "IV: drivable area alone beats buildings alone (R@1m)",
-        [r("road"), r("building")],
-        lambda a, b: a > b,
-        lambda a, b: a - b,
-    )
-    add(
-        "IV: both together best (R@1m: both, road, building)",
-        [r("hd"), r("road"), r("building")],
-        lambda a, b, c: a > max(b, c),
-        lambda a, b, c: a - max(b, c),
-    )
-    add(
-        "V: 2.5 m best at R@1m (2.5 / 5 / 10 m)",
-        [r("sd_w2.5"), r("sd_w5"), r("sd")],
-        lambda a, b, c: a >= max(b, c),
-        lambda a, b, c: a - max(b, c),
-    )
-    add(
-        "V: 10 m best at R@5m (2.5 / 5 / 10 m)",
-        [r("sd_w2.5", "R@5m"), r("sd_w5", "R@5m"), r("sd", "R@5m")],
-        lambda a, b, c: c >= max(a, b),
-    )
-    if all(v is not None for v in seeds):
-        import numpy as np
-
-        out.append(
-            (
-                "seed spread of the HD row (R@1m test, 3 seeds: mean ± std)",
-                None,
-                f"{np.mean(seeds):.1f} ± {np.std(seeds, ddof=1):.1f}",
-                f"range {spread:.1f}",
-            )
-        )
-    return out
-
-
-def collect(data, budget: str, out_md: str, fig_dir: str, note: str = "") -> str:
-    os.makedirs(fig_dir, exist_ok=True)
-    rel = os.path.relpath(fig_dir, os.path.dirname(os.path.abspath(out_md)))
-    parts = [
-        f"# Results: the paper's tables on the embedded benchmark (budget `{budget}`)",
-        "",
-        "Measured by `python experiments/paper_tables.py run budget="
-        f"{budget}` and collected by `python experiments/paper_tables.py collect budget={budget}`"
-        " (each row's own command is in its last column). Data: the simulator over real OSM "
-        "Helsinki (train / val / test, spatially disjoint) and Kouvola (never trained on: the "
-        "generalization test, the paper's Miami → Pittsburgh). Recalls in %, APE in m, AOE in °, "
-        "IoU of the predicted BEV in %. The paper's numbers (↳ rows) are on nuScenes (Table I) "
-        "and Argoverse (III–V), quoted where the project tracks them. Each command ends with the "
-        "commit it ran at (`@abc1234`). Every row but HD runs with `eval.mode=single` "
-        "(single-frame evaluation only; at commits before that key existed, single-frame was "
-        "all there was); the HD row is the main job and also tracks the drives "
-        "(README, sequential localization).",
-        "",
-        *([note, ""] if note else []),
-    ]
-    tables = [
-        (
-            "I",
-            "Table I — map kinds and the GT-segmentation upper bound (Helsinki test)",
-            [
-                ("SegLocNet-HD", "hd"),
-                ("SegLocNet-SD (10 m)", "sd"),
-                ("SegLocNet-NM", "nm"),
-                ("GT segmentation, HD", "gt_hd"),
-                ("GT segmentation, SD", "gt_sd"),
-            ],
-            "test",
-        ),
-        (
-            "III",
-            "Table III — generalization: trained on Helsinki, tested on Kouvola",
-            [
-                ("SegLocNet-HD", "hd"),
-                ("SegLocNet-SD (10 m)", "sd"),
-                ("SegLocNet-NM", "nm"),
-                ("GT segmentation, HD", "gt_hd"),
-                ("GT segmentation, SD", "gt_sd"),
-            ],
-            "kouvola",
-        ),
-        (
-            "IV",
-            "Table IV — map channels (HD map, Helsinki test)",
-            [("drivable area only", "road"), ("buildings only", "building"), ("both", "hd")],
-            "test",
-        ),
-        (
-            "V",
-            "Table V — SD road width (Helsinki test)",
-            [("2.5 m", "sd_w2.5"), ("5 m", "sd_w5"), ("10 m", "sd")],
-            "test",
-        ),
-        (
-            "modality",
-            "Modality (HD map, same budget; not in the paper), Helsinki test",
-            [("camera only", "camera"), ("LiDAR only", "lidar"), ("fused", "hd")],
-            "test",
-        ),
-        (
-            "seeds",
-            "Seed spread (HD row, three seeds), Helsinki test",
-            [("seed 0", "hd"), ("seed 1", "hd_seed1"), ("seed 2", "hd_seed2")],
-            "test",
-        ),
-    ]
-    for key, title, rows, split in tables:
-        paper = PAPER.get(key)
-        if key == "III":
-            paper = {n: {"R@1m": v[1]} for n, v in PAPER["III"].items()}
-        parts.append(_row_table(title, rows, data, split, paper))
-        if key == "III":
-            parts.append("")
-            parts.append(
-                "Paper, Argoverse R@1m Miami → Pittsburgh: "
-                + ", ".join(f"{n.upper()} {a} → {b}" for n, (a, b) in PAPER["III"].items())
-            )
-        fig = os.path.join(fig_dir, f"results_{key.lower()}.png")
-        _figure(fig, title, rows, data, split)
-        parts += ["", f"![{title}]({os.path.join(rel, os.path.basename(fig))})", ""]
-        if key == "III":  # the same rows on both cities side by side
-            parts.append("")
-    parts += [
-        "## Findings",
-        "",
-        "The last column compares the gap that decides a finding with the HD row's seed range "
-        "(max − min test R@1m over its seeds): a gap within it may be run-to-run noise.",
-        "",
-        "| finding | holds here | measured | against the seed spread |",
-        "|---|---|---|---|",
-    ]
-    for text, holds, measured, margin in findings(data):
-        verdict = "–" if holds is None else ("yes" if holds else "no")
-        parts.append(f"| {text} | {verdict} | {measured} | {margin} |")
-    missing = [n for n, d in data.items() if d["results"] is None]
-    if missing:
-        parts += ["", f"Not yet measured: {', '.join(missing)} (run the set again to fill them)."]
-    text = "\n".join(parts) + "\n"
-    from seglocnet_jax import fileio
-
-    fileio.write_text_atomic(out_md, text)
-    return text
 
 
 def main(argv=None) -> int:
