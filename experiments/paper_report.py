@@ -187,6 +187,13 @@ def findings(data) -> list[tuple[str, bool | None, str, str]]:
         [r("sd_w2.5", "R@5m"), r("sd_w5", "R@5m"), r("sd", "R@5m")],
         lambda a, b, c: c >= max(a, b),
     )
+    add(
+        "Modality (not in the paper): fused beats camera only and LiDAR only (R@1m: fused, "
+        "camera, LiDAR)",
+        [r("hd"), r("camera"), r("lidar")],
+        lambda a, b, c: a > max(b, c),
+        lambda a, b, c: a - max(b, c),
+    )
     if all(v is not None for v in seeds):
         import numpy as np
 

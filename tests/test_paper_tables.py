@@ -163,3 +163,6 @@ def test_findings_weigh_the_deciding_gap_against_the_seed_range():
     assert road[1] is True and road[3] == "gap 3.0 ≤ seed range 5.0"
     assert both[1] is True and both[3] == "gap 7.0 > seed range 5.0"
     assert by_text["I: HD > SD > NM at R@1m (test)"][1] is None
+    data.update(camera=row(8.0), lidar=row(60.0))  # the fused row at seed 0 is hd
+    modality = [f for f in mod.findings(data) if f[0].startswith("Modality")]
+    assert [m[1:] for m in modality] == [(False, "54.0 / 8.0 / 60.0", "gap 6.0 > seed range 5.0")]
