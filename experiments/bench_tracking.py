@@ -6,9 +6,10 @@ estimate too) on a ``(K, 129, 129)`` belief (K = 256 by default) tracking a synt
 peaked likelihood at the true cell plus distractors and noise; making it is not timed).
 Predict gets the MAP cell of the estimate the previous update returned, as a filter loop
 has it (``--map-cell computed``: predict finds it itself, one more pass over the volume).
-``--window acquisition``: the same frame on the acquisition window (``TrackerConfig.
-acquisition()``, 257 x 257 cells: the first frames of a drive and those after a loss), plus the
-:func:`tracking.narrow` test every such frame runs (``narrow_ms``, not part of the frame).
+``--window acquisition``: the same frame on the acquisition window
+(``TrackerConfig(acquire_size=257).acquisition()``, 257 x 257 cells: the first frames of a drive
+and those after a loss), plus the :func:`tracking.narrow` test every such frame runs
+(``narrow_ms``, not part of the frame).
 
 Milliseconds per frame (compile excluded; median and best over the frames) and per stage
 (``estimate_ms``: a standalone :func:`tracking.estimate`, not part of the frame), wall clock
@@ -60,7 +61,8 @@ def _block(tree):
 def bench(
     num_rotations: int, frames: int, seed: int = 0, map_cell: str = "given", window="tracking"
 ) -> dict:
-    base = tracking.TrackerConfig(num_rotations=num_rotations)
+    wide = 2 * tracking.TrackerConfig().size - 1 if window == "acquisition" else 0  # 257
+    base = tracking.TrackerConfig(num_rotations=num_rotations, acquire_size=wide)
     cfg = base.acquisition() if window == "acquisition" else base
     rng = np.random.default_rng(seed)
     step = np.array([2.0, 0.1, 0.02])  # m forward, m left, rad per frame

@@ -151,10 +151,7 @@ def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
     assert np.hypot(*(centres[1:] - dead[1:, :2]).T).max() < 1.5
     assert np.hypot(*(centres[-1] - drive.poses[-1, :2])) > truth_gap - 1.5
     assert not track.lost.any()
-    # The first frames in the acquisition window (384 px tile), narrowed once the box around
-    # the mode has held the mass for acquire_frames frames (from frame 0: the peak holds it).
-    n_wide = cfg.acquire_frames
-    assert track.acquiring[:n_wide].all() and not track.acquiring[n_wide:].any()
+    assert not track.acquiring.any()  # no acquisition window by default
     assert tile_centres and len(tile_centres) == len(drive)
 
 
@@ -367,7 +364,9 @@ def _tree(data_root, **eval_):
 
 
 def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, capsys):
-    cfg = build_experiment(_tree(data_root, bev_source="gt"))
+    # With the acquisition window (off by default): the app's path through both windows.
+    cfg = build_experiment(_tree(data_root, bev_source="gt", tracker={"acquire_size": 257}))
+    assert cfg.eval.tracker.acquire_size == 257
     key = (cfg.model, cfg.solver, "gt", "volume")
     before = evaluation.TRACE_COUNTS.get(key, 0)
     workdir = str(tmp_path / "gt")

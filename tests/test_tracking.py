@@ -140,7 +140,7 @@ def test_config_rejects_bad_values():
         tr.TrackerConfig(acquire_mass=0.0)
     with pytest.raises(ValueError, match="acquire_frames"):
         tr.TrackerConfig(acquire_frames=0)
-    assert tr.TrackerConfig(acquire_size=0).acquisition() is None
+    assert tr.TrackerConfig().acquisition() is None  # off by default
 
 
 # --------------------------------------------------------------------------- prediction
@@ -240,7 +240,8 @@ def test_recentre_drops_and_reports_the_mass_that_leaves():
 
 
 def test_acquisition_box_prior_and_narrowing_keep_the_world_poses():
-    wide = CFG.acquisition()
+    acq = tr.TrackerConfig(num_rotations=K, acquire_size=257)
+    wide = acq.acquisition()
     assert (wide.size, wide.tile_size, wide.acquire_size) == (257, 384, 0)
     prior = (300.0, 200.0)
     box = tr.init_belief(wide, prior, box=CFG.centre * CFG.resolution)  # the +-32 m prior box
@@ -257,7 +258,7 @@ def test_acquisition_box_prior_and_narrowing_keep_the_world_poses():
         prob[(cell[0], 0, 0)] = 0.1
         belief = box._replace(prob=np.asarray(prob))
         before = np.asarray(tr.cell_to_world(belief, np.array(cell), wide))
-        narrowed, kept = tr.narrow(belief, wide, CFG)
+        narrowed, kept = tr.narrow(belief, wide, acq)
         new = np.asarray(narrowed.prob)
         assert new.shape == (K, 129, 129) and abs(new.sum() - 1.0) < 1e-5
         assert float(kept) == pytest.approx(0.9, abs=1e-6)

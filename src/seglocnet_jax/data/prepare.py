@@ -5,8 +5,8 @@ Per city it builds a frame source (the simulator by default, :mod:`.sim_source`)
 poses, assigns spatially disjoint train / val / test frames in the main city (:mod:`.splits`)
 and a generalization-only split named after the test city, plus whole continuous drives
 (``drives`` in the test city, ``drives_val`` in the main city clear of train: :mod:`.drives`),
-draws seeded priors (these plans: :mod:`.planning`), renders the sensors in batches and writes shards atomically. Sensors are
-prepared once; map variants (:mod:`.variants`) only rasterize.
+draws seeded priors (these plans: :mod:`.planning`), renders the sensors in batches and writes
+shards atomically. Sensors are prepared once; map variants (:mod:`.variants`) only rasterize.
 
 Sequence metadata: a pool frame's sequence is its short route (``"{city}-p{round}-route{r:05d}"``,
 ``frame_index`` its index along the route, ``timestamp`` distance / ``sim.NOMINAL_SPEED_MPS``)

@@ -4,10 +4,14 @@ Every sequence (a simulated drive, a nuScenes scene, an AV2 log) of a split is t
 Bayes filter over the solver's pose grid (:mod:`seglocnet_jax.tracking`), frame by frame::
 
     frame 0:  belief = uniform over the 129 x 129 x K cells around the record's stored prior
+              (the prior box); with eval.tracker.acquire_size (off by default) inside the
+              257 x 257 acquisition window
     frame t:  belief = predict(belief, odometry[t])          # the vehicle's own odometry
               tile   = the map raster cut around the belief's window centre (never the truth)
               volume = the one localize step (evaluation.make_localize_step, volume variant)
               belief = update(belief, log_softmax(volume / T))   # loss detection + re-widening
+              (acquisition window: narrowed to the 129-cell window once the box around the
+              mode holds the belief; a detected loss goes back to it)
 
 What the filter reads: the sensors (through the network or, for ``bev_source="gt"``, the GT
 labels), the map, the first frame's stored coarse prior and the odometry. The odometry is the

@@ -46,7 +46,8 @@ class TrackerConfig:
         first frames (and the frames after a detected loss) are tracked in this larger window,
         the prior uniform over the ``size`` box around the coarse prior, so that a first peak
         at the far side of the box drags the window away without losing the truth's cells.
-        Its tile is ``acquire_size - 1 + bev_size`` pixels (384 for 257).
+        Its tile is ``acquire_size - 1 + bev_size`` pixels (384 for 257). Off by default: on
+        the validation drives it measured worse (docs/sequential.md).
       acquire_mass, acquire_frames: the filter leaves the acquisition window (:func:`narrow`)
         once the ``size`` box around the mode has held at least ``acquire_mass`` of the belief
         for ``acquire_frames`` consecutive frames (one confident frame may be confidently
@@ -70,7 +71,7 @@ class TrackerConfig:
     lost_entropy: float = 0.9
     peak_radius: float = 2.0
     recover_sigma: float = 0.0
-    acquire_size: int = 2 * geometry.SCORE_SIZE - 1
+    acquire_size: int = 0
     acquire_mass: float = 0.99
     acquire_frames: int = 3
 
