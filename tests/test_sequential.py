@@ -96,6 +96,24 @@ def _straight_drive(n=30, spacing=5.0):
     )
 
 
+def _track_one(step, split, drive, cfg, odometry):
+    """``drive`` through the lockstep loop the apps run (batch 1, T = 1, odometry seed 0)."""
+    (track,), _ = sequential.track_split(
+        step,
+        None,
+        split,
+        [drive],
+        cfg=cfg,
+        odometry_cfg=odometry,
+        odometry_seed=0,
+        temperature=1.0,
+        batch_size=1,
+        place=lambda b: b,
+        desc=drive.sequence_id,
+    )
+    return track
+
+
 def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
     """Frame 0's likelihood is a peak at the truth, every later frame's is flat: the filter can
     only dead-reckon, and the tiles it asks for are centred on its estimate, which follows the
@@ -127,19 +145,7 @@ def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
         return out
 
     split = _FakeSplit(_raster(1), drive)
-    (track,), _ = sequential.track_split(
-        step,
-        None,
-        split,
-        [drive],
-        cfg=cfg,
-        odometry_cfg=odometry,
-        odometry_seed=0,
-        temperature=1.0,
-        batch_size=1,
-        place=lambda b: b,
-        desc="flat",
-    )
+    track = _track_one(step, split, drive, cfg, odometry)
     odo = tr.simulate(drive.poses, drive.timestamps, odometry, sequential.drive_seed(0, "drive-0"))
     dead = tr.compose(track.filtered[0], odo)
     truth_gap = np.hypot(*(dead[-1, :2] - drive.poses[-1, :2]))
@@ -194,19 +200,7 @@ def test_a_far_first_peak_loses_the_truth_only_without_the_acquisition_window(ac
             out["volume"] = jnp.asarray(vol)
         return out
 
-    (track,), _ = sequential.track_split(
-        step,
-        None,
-        _FakeSplit(_raster(2), drive),
-        [drive],
-        cfg=cfg,
-        odometry_cfg=odometry,
-        odometry_seed=0,
-        temperature=1.0,
-        batch_size=1,
-        place=lambda b: b,
-        desc="far peak",
-    )
+    track = _track_one(step, _FakeSplit(_raster(2), drive), drive, cfg, odometry)
     err = np.hypot(*(track.filtered[:, :2] - drive.poses[:, :2]).T)
     assert err[0] > 50.0  # the first frame's mode is the far peak either way
     if acquire_size:
@@ -216,6 +210,31 @@ def test_a_far_first_peak_loses_the_truth_only_without_the_acquisition_window(ac
     else:
         assert err[1:].min() > 20.0, err
         assert not track.acquiring.any()
+
+
+def test_a_loss_in_either_window_restarts_the_acquisition_window_on_the_box():
+    raster = _raster()
+    cfg = tr.TrackerConfig(num_rotations=K, acquire_size=257)
+    wide = cfg.acquisition()
+    for start_wide in (True, False):
+        belief = sequential.start_belief(raster, (-20.3, 130.7), cfg)
+        if not start_wide:
+            belief, _ = tr.narrow(belief, wide, cfg)
+        slot = tracks._Slot(
+            _straight_drive(3),
+            belief._replace(losses=jnp.int32(2)),
+            None,
+            wide if start_wide else cfg,
+            start_wide,
+        )
+        slot.held = 2
+        centre = tr.window_centre(slot.belief, slot.cfg)
+        tracks._next_window(slot, True, cfg, wide, raster)
+        assert slot.wide and slot.cfg == wide and slot.held == 0 and int(slot.belief.losses) == 2
+        np.testing.assert_allclose(tr.window_centre(slot.belief, wide), centre)
+        p_xy = np.asarray(slot.belief.prob).sum(0)
+        assert p_xy[64:193, 64:193].sum() == pytest.approx(1.0, abs=1e-5)  # the box only
+        assert p_xy[:64].sum() == 0 and p_xy[:, 193:].sum() == 0
 
 
 # --------------------------------------------------------------------------- read-outs

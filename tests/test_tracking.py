@@ -259,6 +259,10 @@ def test_acquisition_box_prior_and_narrowing_keep_the_world_poses():
         belief = box._replace(prob=np.asarray(prob))
         before = np.asarray(tr.cell_to_world(belief, np.array(cell), wide))
         narrowed, kept = tr.narrow(belief, wide, acq)
+        given, kept_given = tr.narrow(belief, wide, acq, map_cell=np.array(cell))  # the loop's
+        np.testing.assert_array_equal(given.prob, narrowed.prob)
+        np.testing.assert_array_equal(given.centre, narrowed.centre)
+        assert float(kept_given) == float(kept)
         new = np.asarray(narrowed.prob)
         assert new.shape == (K, 129, 129) and abs(new.sum() - 1.0) < 1e-5
         assert float(kept) == pytest.approx(0.9, abs=1e-6)

@@ -349,20 +349,20 @@ def track_split(
 
 
 def _next_window(slot: _Slot, lost: bool, cfg, wide_cfg, raster) -> None:
-    """The window the slot's next frame is tracked in: the acquisition window narrows once the
-    box around the mode has held ``cfg.acquire_mass`` for ``cfg.acquire_frames`` frames in a
-    row; a detected loss goes back to it (uniform over the box around the window centre, the
-    last estimate; the loss count kept)."""
+    """The window the slot's next frame is tracked in: a detected loss (in either window)
+    starts the acquisition window again, uniform over the box around the window centre (the
+    last estimate; the loss count kept); the acquisition window narrows once the box around
+    the mode has held ``cfg.acquire_mass`` for ``cfg.acquire_frames`` frames in a row."""
     if wide_cfg is None:
         return
-    if slot.wide:
-        belief, kept = tracking.narrow(slot.belief, wide_cfg, cfg)
+    if lost:
+        losses = slot.belief.losses
+        belief = start_belief(raster, tracking.window_centre(slot.belief, slot.cfg), cfg)
+        slot.belief, slot.cfg, slot.wide = belief._replace(losses=losses), wide_cfg, True
+        slot.held, slot.map_cell = 0, None
+    elif slot.wide:
+        belief, kept = tracking.narrow(slot.belief, wide_cfg, cfg, map_cell=slot.map_cell)
         slot.held = slot.held + 1 if float(kept) >= cfg.acquire_mass else 0
         if slot.held >= cfg.acquire_frames:
             slot.belief, slot.cfg, slot.wide, slot.held = belief, cfg, False, 0
             slot.map_cell = None  # the next predict finds the mode in the new window
-    elif lost:
-        losses = slot.belief.losses
-        belief = start_belief(raster, tracking.window_centre(slot.belief, cfg), cfg)
-        slot.belief, slot.cfg, slot.wide = belief._replace(losses=losses), wide_cfg, True
-        slot.map_cell = None
