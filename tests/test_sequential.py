@@ -161,12 +161,14 @@ def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
     assert tile_centres and len(tile_centres) == len(drive)
 
 
-@pytest.mark.parametrize("acquire_size", [257, 0])
-def test_a_far_first_peak_loses_the_truth_only_without_the_acquisition_window(acquire_size):
+@pytest.mark.parametrize(("acquire_size", "hypotheses"), [(257, 1), (0, 1), (0, 3)])
+def test_a_far_first_peak_loses_the_truth_with_one_window_only(acquire_size, hypotheses):
     """Frame 0's likelihood peaks 55 m from the truth, at the far side of the prior box, and
-    (more weakly) at the truth; every later frame peaks at the truth alone. The window follows
-    the mode: the 129-cell window drops the truth's cells at frame 0 and never finds it again;
-    the acquisition window keeps them, the truth wins from frame 2, and the filter narrows."""
+    (more weakly, 5 nats) at the truth; every later frame peaks at the truth alone. The window
+    follows the mode: the 129-cell window drops the truth's cells at frame 0 and never finds it
+    again; the acquisition window keeps them, the truth wins from frame 2, and the filter
+    narrows; a bank of windows gives the truth's mode a window of its own, whose evidence wins
+    from frame 1, and the far window is pruned."""
     drive = _straight_drive(n=12)
     wrong = drive.priors[0] + [28.0, -20.0]  # inside the +-32 m box around the prior
     assert np.hypot(*(wrong - drive.poses[0, :2])) > 50.0
@@ -176,7 +178,11 @@ def test_a_far_first_peak_loses_the_truth_only_without_the_acquisition_window(ac
     ev = evaluation.EvalConfig(
         odometry=odometry,
         tracker=evaluation.TrackerSection(
-            lost_log_odds=0.0, lost_peak_mass=0.0, lost_entropy=1.0, acquire_size=acquire_size
+            lost_log_odds=0.0,
+            lost_peak_mass=0.0,
+            lost_entropy=1.0,
+            acquire_size=acquire_size,
+            hypotheses=hypotheses,
         ),
     )
     cfg = sequential.tracker_config(ev, K)
@@ -192,7 +198,7 @@ def test_a_far_first_peak_loses_the_truth_only_without_the_acquisition_window(ac
                 peaks = [(pose_tile, 20.0)]
                 if int(batch["frame_index"][i]) == 0:
                     off = wrong - np.asarray(batch["tile_center"][i])
-                    peaks.append((np.array([*off, pose_tile[2]]), 40.0))
+                    peaks.append((np.array([*off, pose_tile[2]]), 25.0))
                 for p, score in peaks:
                     cell = np.round(geometry.pose_to_cell(p, K, size=n)).astype(int)
                     if (0 <= cell[1:]).all() and (cell[1:] < n).all():
@@ -207,9 +213,13 @@ def test_a_far_first_peak_loses_the_truth_only_without_the_acquisition_window(ac
         assert err[2:].max() < 1.0, err
         # narrowed once the box around the mode had held the mass for acquire_frames frames
         assert track.acquiring[: cfg.acquire_frames].all() and not track.acquiring[-1]
+    elif hypotheses > 1:
+        assert err[1:].max() < 1.0, err
+        assert track.hypotheses[0] >= 2 and track.hypotheses[-1] == 1  # the far one pruned
+        assert not track.acquiring.any()
     else:
         assert err[1:].min() > 20.0, err
-        assert not track.acquiring.any()
+        assert not track.acquiring.any() and (track.hypotheses == 1).all()
 
 
 def test_a_loss_in_either_window_restarts_the_acquisition_window_on_the_box():
@@ -258,22 +268,48 @@ def test_streamed_temperature_fit_matches_the_in_memory_fit():
     assert abs(fit.result() / 4.0 - 1) < 0.15
 
 
+def _readout(beliefs, log_w, pose, cfg):
+    """The credible mass and log p of the GT pose, as the lockstep loop reads them out."""
+    cells = [tracks._gt_cell(b, pose, cfg) for b in beliefs]
+    return tr.hypotheses.mixture_readout(beliefs, log_w, cells, cfg, tracks.LOG_P_FLOOR_P)
+
+
 def test_readout_credible_mass_is_the_credible_region_test():
     cfg = tr.TrackerConfig(num_rotations=4, size=9, bev_size=8)
     prob = np.random.default_rng(0).random((4, 9, 9)) ** 4
     prob = (prob / prob.sum()).astype(np.float32)
     belief = tr.init_belief(cfg, (0.0, 0.0))._replace(prob=jnp.asarray(prob))
-    mode = tr.estimate(belief, cfg)["map_cell"]
     for cell in [(0, 4, 4), (1, 0, 8), (3, 7, 2), (2, 5, 5)]:
         pose = tr.cell_to_world(belief, np.array(cell, np.float32), cfg)
-        _, above, log_p = tracks._readout(belief, mode, pose, cfg)
+        above, log_p = _readout([belief], [0.0], pose, cfg)
         for mass in (0.5, 0.9, 0.99):
             assert bool(above < mass) == bool(tr.in_credible_region(belief, np.array(cell), mass))
         want = max(math.log(float(prob[cell])), tracks.LOG_P_FLOOR)
         assert float(log_p) == pytest.approx(want, abs=1e-5)
     outside = tr.cell_to_world(belief, np.array([0.0, 4.0, 20.0], np.float32), cfg)
-    _, above, log_p = tracks._readout(belief, mode, outside, cfg)
+    above, log_p = _readout([belief], [0.0], outside, cfg)
     assert math.isinf(float(above)) and float(log_p) == pytest.approx(tracks.LOG_P_FLOOR)
+
+
+def test_readout_of_a_bank_is_the_mixtures():
+    """Two windows 100 m apart with weights 0.3 / 0.7: the credible mass and log p of a GT in
+    either are those of the mixture over the union of their cells."""
+    cfg = tr.TrackerConfig(num_rotations=4, size=9, bev_size=8)
+    rng = np.random.default_rng(3)
+    probs = [rng.random((4, 9, 9)) ** 4 for _ in range(2)]
+    probs = [(p / p.sum()).astype(np.float32) for p in probs]
+    beliefs = [
+        tr.init_belief(cfg, xy)._replace(prob=jnp.asarray(p))
+        for xy, p in zip([(0.0, 0.0), (100.0, 0.0)], probs, strict=True)
+    ]
+    weights = np.array([0.3, 0.7])
+    union = np.concatenate([w * p.ravel() for w, p in zip(weights, probs, strict=True)])
+    for b, cell in [(0, (1, 2, 3)), (1, (3, 4, 4)), (1, (0, 8, 1))]:
+        pose = tr.cell_to_world(beliefs[b], np.array(cell, np.float32), cfg)
+        above, log_p = _readout(beliefs, np.log(weights) + 5.0, pose, cfg)  # unnormalized
+        p = weights[b] * probs[b][cell]
+        assert above == pytest.approx(union[union > p].sum(), abs=1e-6)
+        assert log_p == pytest.approx(math.log(p), abs=1e-5)
 
 
 def test_readout_mode_is_the_solvers_refined_peak():
@@ -288,7 +324,7 @@ def test_readout_mode_is_the_solvers_refined_peak():
         belief = tr.init_belief(cfg, (10.0, 20.0))._replace(prob=jnp.asarray(prob, jnp.float32))
         mode = tr.estimate(belief, cfg)["map_cell"]
         np.testing.assert_array_equal(mode, peak)
-        pose, _, _ = tracks._readout(belief, mode, jnp.zeros(3), cfg)
+        pose = tracks._readout(belief, mode, cfg)
         cell, _ = solver.decode_cell(jnp.log(jnp.asarray(prob, jnp.float32)))
         want = tr.cell_to_world(belief, cell, cfg)
         np.testing.assert_allclose(pose[:2], want[:2], atol=1e-4)
@@ -315,6 +351,7 @@ def test_summary_follows_the_documented_definitions():
         log_p_gt=np.where(err < 1.0, -2.0, -5.0),
         lost=lost,
         acquiring=np.arange(n) < 6,
+        hypotheses=np.where(np.arange(n) < 4, 3, 1),
     )
     s = sequential.summarize([track])
     d = s["per_drive"][0]
@@ -328,6 +365,8 @@ def test_summary_follows_the_documented_definitions():
     assert s["coverage"]["0.5"] == s["coverage_90"] == pytest.approx(100 * 15 / 30)
     assert s["filtered"]["count"] == s["single"]["count"] == n
     assert d["frames_acquiring"] == 6 and s["acquiring_pct"] == pytest.approx(20.0)
+    assert d["frames_multi_hypothesis"] == 4
+    assert s["hypotheses_mean"] == pytest.approx((4 * 3 + 26) / 30)
     assert s["single"]["APE"] == 0.0 and s["filtered"]["APE"] == pytest.approx(err.mean())
 
 
@@ -437,7 +476,10 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
 
 
 def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, capsys):
-    cfg = build_experiment(_tree(data_root, mode="both", temperature=200.0))
+    # With a bank of windows (tracking.hypotheses): the app's path through several windows.
+    tree = _tree(data_root, mode="both", temperature=200.0, tracker={"hypotheses": 3})
+    cfg = build_experiment(tree)
+    assert cfg.eval.tracker.hypotheses == 3
     workdir = str(tmp_path / "run")
     results = train_run.train_and_evaluate(cfg, workdir)
     out = capsys.readouterr().out
@@ -450,6 +492,13 @@ def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, cap
     assert "| seq_test [hd_road-building, tiny-seg] drives_val filtered |" in out
     lines = [json.loads(ln) for ln in open(os.path.join(workdir, "metrics.jsonl"))]
     assert {"test", "drives_val_sequential"} <= {ln["split"] for ln in lines}
+    # Frame 0 split into windows; the count per frame is saved and printed.
+    arrays = np.load(os.path.join(workdir, "sequential", "drives_val.npz"))
+    assert arrays["hypotheses"].shape == (s["frames"],) and arrays["hypotheses"].max() <= 3
+    assert s["hypotheses_mean"] == pytest.approx(arrays["hypotheses"].mean())
+    first = arrays["frame_index"] == arrays["frame_index"].min()
+    assert (arrays["hypotheses"][first] > 1).any()
+    assert "windows per frame" in out
 
 
 @pytest.mark.parametrize(

@@ -62,6 +62,7 @@ def drive_summary(track: Track) -> dict:
         "lost_episodes_detected": int(flagged),
         "longest_lost_run": int(max((b - a for a, b in episodes), default=0)),
         "frames_acquiring": int(np.sum(track.acquiring)),
+        "frames_multi_hypothesis": int(np.sum(track.hypotheses > 1)),
     }
 
 
@@ -100,6 +101,8 @@ def summarize(tracks: list[Track], masses=MASSES) -> dict:
     }
     out["coverage_90"] = _pct(above < 0.9)
     out["acquiring_pct"] = _pct(np.concatenate([t.acquiring for t in tracks]))
+    # Windows tracked per frame (tracking.hypotheses; 1 without a bank).
+    out["hypotheses_mean"] = float(np.concatenate([t.hypotheses for t in tracks]).mean())
     # The filter's log score: mean log posterior of the GT cell (nats; clamped, see tracks).
     out["mean_log_p_gt"] = float(np.concatenate([t.log_p_gt for t in tracks]).mean())
     out["per_drive"] = per_drive
@@ -197,14 +200,25 @@ def write_figures(
 def write_arrays(tracks: list[Track], path: str) -> str:
     """Per-frame arrays of a split (``.npz``): ids, GT, single-frame and filtered poses, the
     posterior mean and covariance, the mass above the GT cell, its log posterior, the
-    detected losses and the frames tracked in the acquisition window."""
+    detected losses, the frames tracked in the acquisition window and the windows tracked
+    after each frame."""
     cat = {
         "sequence_id": np.concatenate([[t.drive.sequence_id] * len(t.drive) for t in tracks]),
         "frame_index": np.concatenate([t.drive.frame_index for t in tracks]),
         "timestamp": np.concatenate([t.drive.timestamps for t in tracks]),
         "gt": np.concatenate([t.drive.poses for t in tracks]),
     }
-    for key in ("single", "filtered", "mean", "cov_xy", "above", "log_p_gt", "lost", "acquiring"):
+    for key in (
+        "single",
+        "filtered",
+        "mean",
+        "cov_xy",
+        "above",
+        "log_p_gt",
+        "lost",
+        "acquiring",
+        "hypotheses",
+    ):
         cat[key] = np.concatenate([getattr(t, key) for t in tracks])
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     tmp = path + ".tmp.npz"

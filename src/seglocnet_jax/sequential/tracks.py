@@ -19,6 +19,7 @@ from seglocnet_jax import geometry, solver, tracking
 from seglocnet_jax.data import loader as loader_lib
 from seglocnet_jax.data.manifest import read_manifest, split_files
 from seglocnet_jax.evaluation import TRACKER_MOTION_FIELDS, EvalConfig, LocalizeStep
+from seglocnet_jax.tracking import hypotheses
 from seglocnet_jax.tracking import odometry as odometry_lib
 
 WARMUP_STEPS = 2  # lockstep steps left out of the per-frame timings (compilation)
@@ -142,13 +143,9 @@ def start_belief(raster, prior_xy, cfg: tracking.TrackerConfig) -> tracking.Beli
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
-def _readout(belief: tracking.Belief, map_cell, gt_pose, cfg: tracking.TrackerConfig):
+def _readout(belief: tracking.Belief, map_cell, cfg: tracking.TrackerConfig):
     """The posterior mode ``map_cell`` refined to sub-cell (the solver's parabolas on the log
-    posterior), as a world pose, and the posterior mass of the cells strictly more probable
-    than the GT cell (inf when the GT is outside the window): the GT is in the credible region
-    of mass ``m`` iff that mass is below ``m`` (``tracking.in_credible_region`` for every mass
-    at once), and the log posterior of the GT cell (:data:`LOG_P_FLOOR` at the least, and
-    outside the window)."""
+    posterior), as a world pose."""
     prob = belief.prob  # (K, N, N)
     k, h, w = map_cell[0], map_cell[1], map_cell[2]
     n_k, n = cfg.num_rotations, cfg.size
@@ -161,13 +158,13 @@ def _readout(belief: tracking.Belief, map_cell, gt_pose, cfg: tracking.TrackerCo
     offset = offset - 1.0
     on_border = jnp.stack([False, (h == 0) | (h == n - 1), (w == 0) | (w == n - 1)])
     cell = map_cell.astype(jnp.float32) + jnp.where(on_border, 0.0, offset)
-    pose = tracking.cell_to_world(belief, cell, cfg)
-    gt = jnp.round(tracking.world_to_cell(belief, gt_pose, cfg)).astype(jnp.int32)
-    inside = (gt[1] >= 0) & (gt[1] < n) & (gt[2] >= 0) & (gt[2] < n)
-    p = prob[gt[0] % n_k, jnp.clip(gt[1], 0, n - 1), jnp.clip(gt[2], 0, n - 1)]
-    above = jnp.sum(jnp.where(prob > p, prob, 0.0))
-    log_p = jnp.where(inside, jnp.log(jnp.maximum(p, LOG_P_FLOOR_P)), LOG_P_FLOOR)
-    return pose, jnp.where(inside, above, jnp.inf), log_p
+    return tracking.cell_to_world(belief, cell, cfg)
+
+
+def _gt_cell(belief: tracking.Belief, gt_pose, cfg: tracking.TrackerConfig) -> np.ndarray:
+    """The GT's rounded window cell ``(k, h, w)`` (outside ``[0, N)`` beyond the window)."""
+    cell = tracking.world_to_cell(belief, jnp.asarray(gt_pose, jnp.float32), cfg)
+    return np.round(np.asarray(cell)).astype(np.int64)
 
 
 @jax.jit
@@ -190,6 +187,7 @@ class Track:
     log_p_gt: np.ndarray  # (T,) log posterior of the GT cell (clamped: LOG_P_FLOOR)
     lost: np.ndarray  # (T,) bool, the filter detected a track loss at this frame
     acquiring: np.ndarray  # (T,) bool, this frame was tracked in the acquisition window
+    hypotheses: np.ndarray  # (T,) int, windows tracked after this frame (tracking.hypotheses)
 
 
 def _stack(rows: list[dict]) -> dict:
@@ -197,15 +195,35 @@ def _stack(rows: list[dict]) -> dict:
 
 
 class _Slot:
-    """One drive in flight in the lockstep batch; ``cfg`` is its window's (the acquisition
-    window's while ``wide``)."""
+    """One drive in flight in the lockstep batch: its windows (one, or with
+    ``cfg.hypotheses`` > 1 a bank of them, heaviest first) and their log weights; ``cfg`` is
+    the windows' (the acquisition window's while ``wide``)."""
 
     def __init__(self, drive: Drive, belief, odometry, cfg, wide: bool):
-        self.drive, self.belief, self.odometry, self.t = drive, belief, odometry, 0
+        self.drive, self.odometry, self.t = drive, odometry, 0
+        self.beliefs, self.log_w = [belief], [0.0]
+        self.map_cells = [None]  # (3,) of each window's last posterior
+        self.infos = [None]  # each window's last update info
         self.cfg, self.wide = cfg, wide
         self.held = 0  # consecutive frames the acquisition window's box held acquire_mass
-        self.map_cell = None  # (3,) of the last posterior
         self.out = collections.defaultdict(list)
+
+    @property
+    def belief(self):
+        """The heaviest window's belief."""
+        return self.beliefs[0]
+
+    @belief.setter
+    def belief(self, value):
+        self.beliefs[0] = value
+
+    @property
+    def map_cell(self):
+        return self.map_cells[0]
+
+    @map_cell.setter
+    def map_cell(self, value):
+        self.map_cells[0] = value
 
 
 def track_split(
@@ -258,16 +276,17 @@ def track_split(
                 slots[s] = _Slot(d, belief, np.asarray(odo), wide_cfg if wide else cfg, wide)
 
     def volumes(filter_rows, active):
-        """The log-likelihood volume of each active slot: the narrow ones in one padded batch,
-        each acquiring one on its own."""
+        """The log-likelihood volume of each row (``active``: its slot): the narrow ones in
+        padded batches of ``batch_size``, each acquiring one on its own."""
         out = {}
         narrow = [j for j, s in enumerate(active) if not slots[s].wide]
-        if narrow:
-            rows = [filter_rows[j] for j in narrow]
+        for start in range(0, len(narrow), batch_size):
+            chunk = narrow[start : start + batch_size]
+            rows = [filter_rows[j] for j in chunk]
             rows += [rows[0]] * (batch_size - len(rows))  # static shapes
             vol = step(params, place(_stack(rows)), volume=True)["volume"]
             lik = _log_likelihood(vol, temperature)  # (B, K, N, N)
-            out.update({j: lik[i] for i, j in enumerate(narrow)})
+            out.update({j: lik[i] for i, j in enumerate(chunk)})
         for j, s in enumerate(active):
             if slots[s].wide:
                 vol = step(params, place(_stack([filter_rows[j]])), volume=True)["volume"]
@@ -282,23 +301,31 @@ def track_split(
         t0 = time.perf_counter()
         rows = split.rows([slots[s].drive.records[slots[s].t] for s in active])
         t1 = time.perf_counter()
-        filter_rows = []
-        for s, row in zip(active, rows, strict=True):
+        filter_rows, owners = [], []  # a row per window; owners: (active index, window)
+        for j, (s, row) in enumerate(zip(active, rows, strict=True)):
             slot = slots[s]
-            if slot.t:  # the previous estimate's MAP cell saves predict a pass
-                slot.belief, _ = tracking.predict(
-                    slot.belief, slot.odometry[slot.t], slot.cfg, map_cell=slot.map_cell
+            for i in range(len(slot.beliefs)):
+                if slot.t:  # the previous estimate's MAP cell saves predict a pass
+                    slot.beliefs[i], moved = tracking.predict(
+                        slot.beliefs[i], slot.odometry[slot.t], slot.cfg, map_cell=slot.map_cells[i]
+                    )
+                    if len(slot.beliefs) > 1:  # the mass that left the window
+                        slot.log_w[i] = slot.log_w[i] + jnp.log(
+                            jnp.maximum(1.0 - moved["dropped"], 1e-30)
+                        )
+                tile, centre = filter_tile(
+                    split.rasters[slot.drive.city], slot.beliefs[i], slot.cfg
                 )
-            tile, centre = filter_tile(split.rasters[slot.drive.city], slot.belief, slot.cfg)
-            pose = np.asarray(row["pose"], np.float64)
-            filter_rows.append(
-                {
-                    **row,
-                    "tile": np.asarray(tile, np.float32),
-                    "tile_center": centre,
-                    "pose_tile": np.array([*(pose[:2] - centre), pose[2]], np.float32),
-                }
-            )
+                pose = np.asarray(row["pose"], np.float64)
+                filter_rows.append(
+                    {
+                        **row,
+                        "tile": np.asarray(tile, np.float32),
+                        "tile_center": centre,
+                        "pose_tile": np.array([*(pose[:2] - centre), pose[2]], np.float32),
+                    }
+                )
+                owners.append((j, i))
         t2 = time.perf_counter()
         pad = batch_size - len(active)  # repeat the first row: static shapes
         if single:
@@ -306,18 +333,32 @@ def track_split(
             pose_tile = np.asarray(jax.device_get(one["pose_tile"]), np.float64)
         else:
             pose_tile = np.full((batch_size, 3), np.nan)
-        log_lik = volumes(filter_rows, active)
+        log_lik = volumes(filter_rows, [active[j] for j, _ in owners])
         t3 = time.perf_counter()
+        for r, (j, i) in enumerate(owners):
+            slot = slots[active[j]]
+            slot.beliefs[i], info = tracking.update(slot.beliefs[i], log_lik[r], slot.cfg)
+            slot.map_cells[i] = info["estimate"]["map_cell"]
+            slot.infos[i] = info
+            if cfg.hypotheses > 1:
+                slot.log_w[i] = slot.log_w[i] + info["log_evidence"]
         for j, s in enumerate(active):
             slot = slots[s]
-            slot.belief, info = tracking.update(slot.belief, log_lik[j], slot.cfg)
+            lost = any(bool(info["lost"]) for info in slot.infos)  # in any window
+            _weigh_windows(slot, cfg, first=slot.t == 0)
             gt = slot.drive.poses[slot.t]
-            est = info["estimate"]
-            slot.map_cell = est["map_cell"]
-            mode, above, log_p = _readout(
-                slot.belief, est["map_cell"], jnp.asarray(gt, jnp.float32), slot.cfg
+            if slot.infos[0] is None:  # frame 0's split: the heaviest piece's own estimate
+                est = jax.device_get(tracking.estimate(slot.belief, slot.cfg))
+            else:
+                est = jax.device_get(slot.infos[0]["estimate"])
+            mode = _readout(slot.belief, jnp.asarray(slot.map_cell), slot.cfg)
+            above, log_p = hypotheses.mixture_readout(
+                slot.beliefs,
+                slot.log_w,
+                [_gt_cell(b, gt, slot.cfg) for b in slot.beliefs],
+                slot.cfg,
+                LOG_P_FLOOR_P,
             )
-            est = jax.device_get(est)
             slot.out["filtered"].append(np.asarray(mode, np.float64))
             slot.out["single"].append(
                 solver.tile_pose_to_world(pose_tile[j], rows[j]["tile_center"])
@@ -326,9 +367,10 @@ def track_split(
             slot.out["cov_xy"].append(np.asarray(est["cov_xy"], np.float64))
             slot.out["above"].append(float(above))
             slot.out["log_p_gt"].append(float(log_p))
-            slot.out["lost"].append(bool(info["lost"]))
+            slot.out["lost"].append(lost)
             slot.out["acquiring"].append(slot.wide)
-            _next_window(slot, bool(info["lost"]), cfg, wide_cfg, split.rasters[slot.drive.city])
+            slot.out["hypotheses"].append(len(slot.beliefs))
+            _next_window(slot, lost, cfg, wide_cfg, split.rasters[slot.drive.city])
             slot.t += 1
             if slot.t == len(slot.drive):
                 done[slot.drive.sequence_id] = Track(
@@ -346,6 +388,33 @@ def track_split(
         fill()
     bar.close()
     return [done[d.sequence_id] for d in drives], timing
+
+
+def _weigh_windows(slot: _Slot, cfg: tracking.TrackerConfig, *, first: bool) -> None:
+    """After a frame's update: with ``cfg.hypotheses`` > 1, frame 0's posterior is split among
+    its modes (:func:`tracking.hypotheses.split_modes`); then the windows are pruned and merged
+    (:func:`tracking.hypotheses.prune_and_merge`), the heaviest first."""
+    if cfg.hypotheses <= 1:
+        return
+    if first:
+        pieces = hypotheses.split_modes(slot.belief, slot.cfg)
+        slot.beliefs = [b for b, _ in pieces]
+        slot.log_w = [lw for _, lw in pieces]
+        slot.map_cells = [None] * len(pieces)
+        slot.infos = [None] * len(pieces)
+    cells = [
+        tracking.estimate(b, slot.cfg)["map_cell"] if c is None else c
+        for b, c in zip(slot.beliefs, slot.map_cells, strict=True)
+    ]
+    poses = [
+        tracking.cell_to_world(b, c, slot.cfg) for b, c in zip(slot.beliefs, cells, strict=True)
+    ]
+    log_w = np.array([float(v) for v in slot.log_w])
+    kept, log_w = hypotheses.prune_and_merge(log_w, np.asarray(jax.device_get(poses)), cfg)
+    slot.beliefs = [slot.beliefs[i] for i in kept]
+    slot.map_cells = [cells[i] for i in kept]
+    slot.infos = [slot.infos[i] for i in kept]
+    slot.log_w = list(log_w)
 
 
 def _next_window(slot: _Slot, lost: bool, cfg, wide_cfg, raster) -> None:

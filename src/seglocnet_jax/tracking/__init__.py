@@ -39,6 +39,10 @@ One frame of a drive::
   (uniform over the ``size`` window around it, zero outside). A first peak at the far side of
   the box then moves the window onto it without losing the truth's cells; :func:`narrow` cuts
   the belief to the ``size`` window around its mode once that box holds ``acquire_mass``.
+* several hypotheses (``hypotheses`` > 1, :mod:`~seglocnet_jax.tracking.hypotheses`): frame
+  0's posterior is split among its strongest modes, each tracked in a window of its own; the
+  windows are weighted by their evidence (a mixture, exact up to the cells that leave a window)
+  and pruned / merged; the estimate is the heaviest window's mode.
 * odometry (:mod:`~seglocnet_jax.tracking.odometry`): the motion between frames as wheel
   odometry + a MEMS gyro measure it (:func:`simulate`), dead reckoning (:func:`compose`) and
   the filter's motion noise that covers it (:func:`tracker_noise`).
@@ -55,6 +59,7 @@ Sums over the volume go per slice first (a full reduction to a scalar is several
 on XLA CPU), and the update's evidence and yaw marginal come from the same per-slice sums.
 """
 
+from seglocnet_jax.tracking import hypotheses
 from seglocnet_jax.tracking.belief import (
     Belief,
     TrackerConfig,
@@ -85,6 +90,7 @@ __all__ = [
     "predict",
     "recentre",
     "narrow",
+    "hypotheses",
     "update",
     "estimate",
     "in_credible_region",

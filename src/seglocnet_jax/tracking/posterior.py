@@ -95,6 +95,8 @@ def _update_kernel(belief: Belief, log_lik, cfg: TrackerConfig):
     post = prior * lik / z
     stats = _estimate(belief._replace(prob=post), cfg, p_k / z)
     agreement = jnp.log(z) - jnp.log(z_mean)  # log Bayes factor, this frame (nats)
+    # log sum prior * exp(log_lik): the likelihood was scaled by exp(-max) (outlier = 0).
+    log_evidence = jnp.log(z) + log_lik.max()
     cusum = jnp.minimum(0.0, belief.cusum + agreement)
     by_odds = (cfg.lost_log_odds > 0) & (cusum < -cfg.lost_log_odds)
     by_shape = belief.locked & (
@@ -104,7 +106,12 @@ def _update_kernel(belief: Belief, log_lik, cfg: TrackerConfig):
     locked = belief.locked | (stats["peak_mass"] >= cfg.lock_peak_mass)
     new = belief._replace(prob=post, cusum=cusum, locked=locked)
     stats.update(locked=locked)
-    return new, {"agreement": agreement, "lost": lost, "estimate": stats}
+    return new, {
+        "agreement": agreement,
+        "log_evidence": log_evidence,
+        "lost": lost,
+        "estimate": stats,
+    }
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
@@ -130,7 +137,9 @@ def update(belief: Belief, log_likelihood, cfg: TrackerConfig) -> tuple[Belief, 
 
     Returns:
       The posterior and ``{"agreement": log Bayes factor of this frame (prior vs uniform,
-      nats), "lost": a track loss was detected (the posterior is then the re-widened prior
+      nats), "log_evidence": log sum over the cells of prior * exp(log_likelihood), the
+      floor included (with ``cfg.outlier`` = 0; the weight of a window among several
+      hypotheses), "lost": a track loss was detected (the posterior is then the re-widened prior
       times this frame's likelihood), "estimate": :func:`estimate` of the returned
       posterior}``.
     """
