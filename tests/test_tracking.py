@@ -7,6 +7,7 @@ every test fast."""
 
 import math
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -450,3 +451,54 @@ def test_outlier_term_bounds_what_one_wrong_frame_does_to_a_locked_belief():
         np.testing.assert_array_equal(tr.estimate(agree, cfg)["map_cell"], truth)
     with pytest.raises(ValueError, match="outlier"):
         tr.TrackerConfig(outlier=1.0)
+
+
+# --------------------------------------------------------------------------- a bank of windows
+
+
+def test_split_modes_partitions_the_belief_first_window_the_single_ones():
+    """Three blobs: A (strongest), B 10 m from A (inside A's window), C 50 m from A (outside
+    it). The first window is the one a single-window filter moves to (centred on A, holding
+    A and B); the second is centred on C and holds what the first left out; the parts'
+    weights are their masses (a partition: they sum to 1). Every cell keeps its world pose."""
+    cfg = tr.TrackerConfig(num_rotations=K, hypotheses=3)
+    n, c = cfg.size, cfg.centre
+    prob = np.full((K, n, n), 1e-12, np.float32)
+    blobs = {"A": ((2, 70, 30), 0.5), "B": ((5, 70, 50), 0.3), "C": ((9, 20, 120), 0.2)}
+    for (k, h, w), mass in blobs.values():
+        prob[k, h, w] = mass
+    prob /= prob.sum()
+    belief = tr.init_belief(cfg, (300.0, 200.0))._replace(prob=jnp.asarray(prob))
+    pieces = tr.hypotheses.split_modes(belief, cfg)
+    weights = np.exp([lw for _, lw in pieces])
+    assert weights.sum() == pytest.approx(1.0, abs=1e-5)
+    first, second = pieces[0][0], pieces[1][0]
+    single, _ = tr.recentre(belief, (70 - c, 30 - c), cfg)  # the single window on A
+    np.testing.assert_array_equal(first.centre, single.centre)
+    for name, piece in [("A", first), ("B", first), ("C", second)]:
+        (k, h, w), mass = blobs[name]
+        world = tr.cell_to_world(belief, jnp.array([k, h, w], jnp.float32), cfg)
+        cell = np.round(np.asarray(tr.world_to_cell(piece, world, cfg))).astype(int)
+        assert (0 <= cell[1:]).all() and (cell[1:] < n).all(), name
+        p = float(piece.prob[cell[0] % K, cell[1], cell[2]])
+        assert p * weights[0 if piece is first else 1] == pytest.approx(mass, rel=1e-3), name
+    mode = np.asarray(tr.estimate(second, cfg)["map_cell"])
+    np.testing.assert_array_equal(mode, [9, c, c])  # C is the second window's centre
+    assert weights[1] == pytest.approx(0.2, rel=1e-3)
+
+
+def test_prune_and_merge_keeps_the_heaviest_first():
+    cfg = tr.TrackerConfig(num_rotations=K, hypotheses=4, hypothesis_prune=10.0)
+    log_w = np.array([-3.0, 0.0, -12.0, -1.0])
+    poses = np.array(
+        [
+            [0.0, 0.0, 0.1],
+            [50.0, 0.0, 0.1],
+            [90.0, 0.0, 0.1],  # 12 nats below the best: pruned
+            [51.0, -1.0, 0.1 + BIN],  # the best one's place and heading: merged into it
+        ]
+    )
+    kept, new = tr.hypotheses.prune_and_merge(log_w, poses, cfg)
+    assert kept == [1, 0]
+    w = np.exp([0.0, -1.0, -3.0])
+    np.testing.assert_allclose(np.exp(new), [(w[0] + w[1]) / w.sum(), w[2] / w.sum()], rtol=1e-9)

@@ -53,13 +53,12 @@ class TrackerConfig:
         for ``acquire_frames`` consecutive frames (one confident frame may be confidently
         wrong: a look-alike street at the far side of the box).
       hypotheses: most windows tracked at once per drive (1: one window). With more, the
-        first frame's posterior (over the prior box) is split among its strongest modes at
-        least ``hypothesis_separation`` m apart (:func:`split_modes`); each mode gets a window
-        of its own, and the windows are weighted by their evidence (a mixture: see
-        :mod:`~seglocnet_jax.tracking.hypotheses`). Needs ``outlier = 0`` (the robust
-        likelihood is normalized per window, so windows could not be compared) and no
-        acquisition window.
-      hypothesis_separation: m; the least distance between two split modes.
+        first frame's posterior (over the prior box) is split among windows that cover it
+        greedily, each centred on the strongest cell not yet covered (the first one is the
+        single window's; :func:`split_modes`), and the windows are weighted by their evidence
+        (a mixture: see :mod:`~seglocnet_jax.tracking.hypotheses`). Needs ``outlier = 0``
+        (the robust likelihood is normalized per window, so windows could not be compared)
+        and no acquisition window.
       hypothesis_prune: nats; a window whose log weight falls this far below the best one's
         is dropped.
     """
@@ -85,7 +84,6 @@ class TrackerConfig:
     acquire_mass: float = 0.99
     acquire_frames: int = 3
     hypotheses: int = 1
-    hypothesis_separation: float = 8.0
     hypothesis_prune: float = 10.0
 
     def __post_init__(self):
@@ -117,11 +115,8 @@ class TrackerConfig:
             raise ValueError(f"acquire_frames must be >= 1, got {self.acquire_frames}")
         if self.hypotheses < 1:
             raise ValueError(f"hypotheses must be >= 1, got {self.hypotheses}")
-        if self.hypothesis_separation <= 0 or self.hypothesis_prune <= 0:
-            raise ValueError(
-                "hypothesis_separation and hypothesis_prune must be > 0, got "
-                f"{self.hypothesis_separation} and {self.hypothesis_prune}"
-            )
+        if self.hypothesis_prune <= 0:
+            raise ValueError(f"hypothesis_prune must be > 0, got {self.hypothesis_prune}")
         if self.hypotheses > 1 and (self.outlier > 0 or self.acquire_size):
             raise ValueError(
                 f"hypotheses = {self.hypotheses} needs outlier = 0 and acquire_size = 0 (got "

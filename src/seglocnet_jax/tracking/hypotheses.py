@@ -5,9 +5,10 @@ cells of the window's mode. The first frame of a drive is where that fails: its 
 the frame's likelihood over the whole prior box, and when its strongest peak is a look-alike
 street at the far side of the box, the window re-centres there and the truth's cells are gone
 for good (docs/sequential.md). With ``TrackerConfig.hypotheses`` > 1 the first frame's
-posterior is split instead among its strongest modes (:func:`split_modes`) and each gets a
-window of its own. The belief is then the mixture ``sum_i w_i b_i`` of the windows' beliefs
-``b_i`` (each normalized over its own cells), and the weights follow Bayes' rule exactly:
+posterior is split instead among windows that cover its strongest modes
+(:func:`split_modes`: the first is the single window's, the others take what it leaves out).
+The belief is then the mixture ``sum_i w_i b_i`` of the windows' beliefs ``b_i`` (each
+normalized over its own cells), and the weights follow Bayes' rule exactly:
 
 * predict: ``w_i *= 1 - dropped_i`` (the mass that left window ``i``);
 * update: ``w_i *= sum_cells b_i * exp(log_lik_i)`` (``update``'s ``log_evidence``: the
@@ -48,39 +49,35 @@ def _masked(prob, mask):
 
 
 def split_modes(belief: Belief, cfg: TrackerConfig) -> list[tuple[Belief, float]]:
-    """The belief split among its up to ``cfg.hypotheses`` strongest modes.
+    """The belief split into up to ``cfg.hypotheses`` windows that cover it greedily.
 
-    The modes are the maxima over yaw of the (x, y) cells, taken greedily, each at least
-    ``cfg.hypothesis_separation`` m (per axis) from the ones before. Every cell goes to its
-    nearest mode (in (x, y)); each mode's part becomes a belief whose window is centred on
-    that mode (:func:`recentre`: the part's cells beyond it are dropped). Returns
-    ``(belief, log weight)`` per mode, strongest first: the weight is the part's mass that
-    the new window kept, so the weights sum to at most 1.
+    The first window is centred on the belief's mode (the strongest (x, y) cell over yaw) and
+    takes every cell it covers: it is the one window a single-window filter would move to.
+    Each next window is centred on the strongest cell no window covers yet and takes the
+    uncovered cells it covers. The parts partition the belief (no cell is in two windows);
+    cells left over once ``cfg.hypotheses`` windows are placed are dropped, and so is a part
+    more than ``cfg.hypothesis_prune`` nats lighter than the first. Returns ``(belief, log
+    weight)`` per window, the first first: the weight is the part's mass.
     """
     n, c = cfg.size, cfg.centre
     peak = np.array(jax.device_get(_peak_map(belief.prob)), np.float64)  # (N, N)
-    sep = max(1, int(round(cfg.hypothesis_separation / cfg.resolution)))
-    work = peak.copy()
-    modes = []
-    while len(modes) < cfg.hypotheses and work.max() > 0:
-        h, w = divmod(int(np.argmax(work)), n)
-        modes.append((h, w))
-        work[max(0, h - sep) : h + sep, max(0, w - sep) : w + sep] = 0.0
-        work[h, w] = 0.0
-    hh, ww = np.mgrid[0:n, 0:n]
-    dist = np.stack([(hh - h) ** 2 + (ww - w) ** 2 for h, w in modes])  # (M, N, N)
-    owner = np.argmin(dist, axis=0)  # ties: the stronger mode
+    covered = np.zeros((n, n), bool)
     out = []
-    for i, (h, w) in enumerate(modes):
-        part, mass = _masked(belief.prob, jnp.asarray(owner == i, jnp.float32))
+    while len(out) < cfg.hypotheses:
+        work = np.where(covered, 0.0, peak)
+        if work.max() <= 0.0:
+            break
+        h, w = divmod(int(np.argmax(work)), n)
+        mask = np.zeros((n, n), bool)
+        mask[max(0, h - c) : h + c + 1, max(0, w - c) : w + c + 1] = True  # its window
+        mask &= ~covered
+        covered |= mask
+        part, mass = _masked(belief.prob, jnp.asarray(mask, jnp.float32))
         mass = float(mass)
-        if mass <= 0.0:
+        if mass <= 0.0 or (out and math.log(mass) < out[0][1] - cfg.hypothesis_prune):
             continue
-        piece = belief._replace(prob=part / mass)
-        piece, dropped = recentre(piece, (h - c, w - c), cfg)
-        kept = mass * (1.0 - float(dropped))
-        if kept > 0.0:
-            out.append((piece, math.log(kept)))
+        piece, _ = recentre(belief._replace(prob=part / mass), (h - c, w - c), cfg)
+        out.append((piece, math.log(mass)))  # the part lies inside the new window
     return out
 
 
