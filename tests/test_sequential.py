@@ -352,6 +352,7 @@ def test_summary_follows_the_documented_definitions():
         lost=lost,
         acquiring=np.arange(n) < 6,
         hypotheses=np.where(np.arange(n) < 4, 3, 1),
+        scale=np.full(n, 1.01),
     )
     s = sequential.summarize([track])
     d = s["per_drive"][0]
@@ -365,7 +366,7 @@ def test_summary_follows_the_documented_definitions():
     assert s["coverage"]["0.5"] == s["coverage_90"] == pytest.approx(100 * 15 / 30)
     assert s["filtered"]["count"] == s["single"]["count"] == n
     assert d["frames_acquiring"] == 6 and s["acquiring_pct"] == pytest.approx(20.0)
-    assert d["frames_multi_hypothesis"] == 4
+    assert d["frames_multi_hypothesis"] == 4 and d["odometry_scale"] == 1.01
     assert s["hypotheses_mean"] == pytest.approx((4 * 3 + 26) / 30)
     assert s["single"]["APE"] == 0.0 and s["filtered"]["APE"] == pytest.approx(err.mean())
 

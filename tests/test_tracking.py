@@ -502,3 +502,26 @@ def test_prune_and_merge_keeps_the_heaviest_first():
     assert kept == [1, 0]
     w = np.exp([0.0, -1.0, -3.0])
     np.testing.assert_allclose(np.exp(new), [(w[0] + w[1]) / w.sum(), w[2] / w.sum()], rtol=1e-9)
+
+
+def test_scale_estimate_learns_the_odometry_scale_from_corrections():
+    """A straight drive whose odometry reads 3 % long; the filtered poses are the truth (the
+    map corrected them): the estimate moves from 1 towards 1 / 1.03 as the distance grows,
+    a jump is left out, and prior_m = 0 keeps the raw odometry."""
+    est = tr.ScaleEstimate(prior_m=100.0)
+    yaw = 0.7
+    poses = [
+        np.array([10.0 + 5.0 * i * math.cos(yaw), 5.0 * i * math.sin(yaw), yaw]) for i in range(80)
+    ]
+    odo = np.array([5.0 * 1.03, 0.0, 0.0])
+    for a, b in zip(poses[:-1], poses[1:], strict=True):
+        est.observe(a, b, odo)
+    assert est.scale == pytest.approx((79 * 5.0 + 100.0) / (79 * 5.15 + 100.0))
+    assert abs(est.scale - 1 / 1.03) < 0.006
+    np.testing.assert_allclose(est.apply(odo), [5.0 * 1.03 * est.scale, 0.0, 0.0])
+    before = (est.along, est.distance)
+    est.observe(poses[0], poses[0] + [30.0, 0.0, 0.0], odo)  # a 30 m jump: left out
+    assert (est.along, est.distance) == before
+    off = tr.ScaleEstimate(prior_m=0.0)
+    off.observe(poses[0], poses[1], odo)
+    assert off.scale == 1.0 and (off.apply(odo) == odo).all()

@@ -63,6 +63,7 @@ def drive_summary(track: Track) -> dict:
         "longest_lost_run": int(max((b - a for a, b in episodes), default=0)),
         "frames_acquiring": int(np.sum(track.acquiring)),
         "frames_multi_hypothesis": int(np.sum(track.hypotheses > 1)),
+        "odometry_scale": float(track.scale[-1]),  # the filter's estimate at the last frame
     }
 
 
@@ -218,6 +219,7 @@ def write_arrays(tracks: list[Track], path: str) -> str:
         "lost",
         "acquiring",
         "hypotheses",
+        "scale",
     ):
         cat[key] = np.concatenate([getattr(t, key) for t in tracks])
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)

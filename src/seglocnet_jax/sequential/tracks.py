@@ -188,6 +188,7 @@ class Track:
     lost: np.ndarray  # (T,) bool, the filter detected a track loss at this frame
     acquiring: np.ndarray  # (T,) bool, this frame was tracked in the acquisition window
     hypotheses: np.ndarray  # (T,) int, windows tracked after this frame (tracking.hypotheses)
+    scale: np.ndarray  # (T,) the odometry distance scale estimated after this frame
 
 
 def _stack(rows: list[dict]) -> dict:
@@ -205,6 +206,7 @@ class _Slot:
         self.map_cells = [None]  # (3,) of each window's last posterior
         self.infos = [None]  # each window's last update info
         self.cfg, self.wide = cfg, wide
+        self.scale = odometry_lib.ScaleEstimate(cfg.scale_prior_m)
         self.held = 0  # consecutive frames the acquisition window's box held acquire_mass
         self.out = collections.defaultdict(list)
 
@@ -307,7 +309,10 @@ def track_split(
             for i in range(len(slot.beliefs)):
                 if slot.t:  # the previous estimate's MAP cell saves predict a pass
                     slot.beliefs[i], moved = tracking.predict(
-                        slot.beliefs[i], slot.odometry[slot.t], slot.cfg, map_cell=slot.map_cells[i]
+                        slot.beliefs[i],
+                        slot.scale.apply(slot.odometry[slot.t]),
+                        slot.cfg,
+                        map_cell=slot.map_cells[i],
                     )
                     if len(slot.beliefs) > 1:  # the mass that left the window
                         slot.log_w[i] = slot.log_w[i] + jnp.log(
@@ -359,7 +364,11 @@ def track_split(
                 slot.cfg,
                 LOG_P_FLOOR_P,
             )
-            slot.out["filtered"].append(np.asarray(mode, np.float64))
+            mode = np.asarray(mode, np.float64)
+            if slot.t:
+                slot.scale.observe(slot.out["filtered"][-1], mode, slot.odometry[slot.t])
+            slot.out["filtered"].append(mode)
+            slot.out["scale"].append(slot.scale.scale)
             slot.out["single"].append(
                 solver.tile_pose_to_world(pose_tile[j], rows[j]["tile_center"])
             )

@@ -72,6 +72,7 @@ from seglocnet_jax.tracking.belief import (
 from seglocnet_jax.tracking.motion import narrow, predict, recentre
 from seglocnet_jax.tracking.odometry import (
     OdometryConfig,
+    ScaleEstimate,
     compose,
     relative_motion,
     simulate,
@@ -96,6 +97,7 @@ __all__ = [
     "in_credible_region",
     "fit_temperature",
     "OdometryConfig",
+    "ScaleEstimate",
     "relative_motion",
     "simulate",
     "compose",

@@ -59,6 +59,10 @@ class TrackerConfig:
         (a mixture: see :mod:`~seglocnet_jax.tracking.hypotheses`). Needs ``outlier = 0``
         (the robust likelihood is normalized per window, so windows could not be compared)
         and no acquisition window.
+      scale_prior_m: metres of prior weight on 1 in the filter's running estimate of the
+        drive's odometry distance scale (:class:`~seglocnet_jax.tracking.odometry.
+        ScaleEstimate`: the filtered track's along-track steps against the odometry's
+        distances; the prediction then scales the odometry by it); 0: the raw odometry.
       hypothesis_prune: nats; a window whose log weight falls this far below the best one's
         is dropped.
     """
@@ -85,6 +89,7 @@ class TrackerConfig:
     acquire_frames: int = 3
     hypotheses: int = 1
     hypothesis_prune: float = 10.0
+    scale_prior_m: float = 0.0
 
     def __post_init__(self):
         if self.num_rotations < 1:
@@ -115,6 +120,8 @@ class TrackerConfig:
             raise ValueError(f"acquire_frames must be >= 1, got {self.acquire_frames}")
         if self.hypotheses < 1:
             raise ValueError(f"hypotheses must be >= 1, got {self.hypotheses}")
+        if self.scale_prior_m < 0:
+            raise ValueError(f"scale_prior_m must be >= 0, got {self.scale_prior_m}")
         if self.hypothesis_prune <= 0:
             raise ValueError(f"hypothesis_prune must be > 0, got {self.hypothesis_prune}")
         if self.hypotheses > 1 and (self.outlier > 0 or self.acquire_size):

@@ -186,3 +186,64 @@ def tracker_noise(cfg: OdometryConfig, *, frame_dt: float = 0.5) -> dict[str, fl
         "sigma_yaw": float(math.hypot(cfg.yaw_sigma, cfg.yaw_bias_sigma * frame_dt)),
         "sigma_yaw_per_rad": float(cfg.yaw_scale_sigma),
     }
+
+
+@dataclasses.dataclass
+class ScaleEstimate:
+    """The filter's running estimate of one drive's odometry distance scale (the per-drive
+    ``1 + s`` of :func:`simulate`), from its own track: the along-track distance between
+    consecutive filtered poses summed against the odometry's distance, with ``prior_m``
+    metres of prior weight on a scale of 1::
+
+        scale = (sum along-track filtered step + prior_m) / (sum odometry distance + prior_m)
+
+    Where the map says little about the position along the road, the filter moves by the
+    predicted ``scale * distance`` and the estimate stays put; where it does (a junction, a
+    building corner), the filter's correction moves the estimate. A step whose filtered pose
+    is more than ``gate`` metres (along or across) from its prediction is a jump (a new mode,
+    a look-alike) and is left out. The estimate is clipped to ``1 +- max_error``.
+
+    Attributes:
+      prior_m: metres of prior weight on 1 (0 disables: the scale stays 1).
+      gate: metres; a step off its prediction by more is left out.
+      max_error: the estimate stays within ``1 +- max_error``.
+    """
+
+    prior_m: float
+    gate: float = 2.0
+    max_error: float = 0.05
+    along: float = 0.0  # m, sum of the filtered steps' along-track components
+    distance: float = 0.0  # m, sum of the odometry distances of the same steps
+
+    @property
+    def scale(self) -> float:
+        if self.prior_m <= 0:
+            return 1.0
+        s = (self.along + self.prior_m) / (self.distance + self.prior_m)
+        return float(np.clip(s, 1.0 - self.max_error, 1.0 + self.max_error))
+
+    def apply(self, odometry) -> np.ndarray:
+        """The odometry ``(forward, left, dyaw)`` with its distance scaled by the estimate."""
+        out = np.array(odometry, np.float64)
+        out[:2] *= self.scale
+        return out
+
+    def observe(self, previous_pose, pose, odometry) -> None:
+        """One step: the filtered poses ``(x, y, yaw)`` before and after it (world) and its
+        raw odometry ``(forward, left, dyaw)``."""
+        if self.prior_m <= 0:
+            return
+        fwd, left = float(odometry[0]), float(odometry[1])
+        dist = math.hypot(fwd, left)
+        if dist < 1e-6:
+            return
+        x, y, yaw = (float(v) for v in previous_pose)
+        c, s = math.cos(yaw), math.sin(yaw)
+        u = np.array([c * fwd - s * left, s * fwd + c * left]) / dist  # along-track, world
+        step = np.asarray(pose[:2], np.float64) - [x, y]
+        along = float(step @ u)
+        across = float(step @ [-u[1], u[0]])
+        if abs(along - self.scale * dist) > self.gate or abs(across) > self.gate:
+            return
+        self.along += along
+        self.distance += dist
