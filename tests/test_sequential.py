@@ -478,7 +478,9 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
 
 def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, capsys):
     # With a bank of windows (tracking.hypotheses): the app's path through several windows.
-    tree = _tree(data_root, mode="both", temperature=200.0, tracker={"hypotheses": 3})
+    # No pruning: every part of frame 0's box the first window leaves out gets a window.
+    tracker = {"hypotheses": 3, "hypothesis_prune": 1e4}
+    tree = _tree(data_root, mode="both", temperature=200.0, tracker=tracker)
     cfg = build_experiment(tree)
     assert cfg.eval.tracker.hypotheses == 3
     workdir = str(tmp_path / "run")
@@ -500,6 +502,12 @@ def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, cap
     first = arrays["frame_index"] == arrays["frame_index"].min()
     assert (arrays["hypotheses"][first] > 1).any()
     assert "windows per frame" in out
+    # The odometry scale estimate (eval.tracker.scale_prior_m, on by default) per frame.
+    assert cfg.eval.tracker.scale_prior_m == 200.0
+    assert arrays["scale"].shape == (s["frames"],) and (np.abs(arrays["scale"] - 1) <= 0.05).all()
+    assert [d["odometry_scale"] for d in s["per_drive"]] == [
+        arrays["scale"][arrays["sequence_id"] == d["sequence_id"]][-1] for d in s["per_drive"]
+    ]
 
 
 @pytest.mark.parametrize(

@@ -89,7 +89,7 @@ class TrackerConfig:
     acquire_frames: int = 3
     hypotheses: int = 1
     hypothesis_prune: float = 10.0
-    scale_prior_m: float = 0.0
+    scale_prior_m: float = 200.0
 
     def __post_init__(self):
         if self.num_rotations < 1:
