@@ -161,10 +161,15 @@ def _readout(belief: tracking.Belief, map_cell, cfg: tracking.TrackerConfig):
     return tracking.cell_to_world(belief, cell, cfg)
 
 
+@functools.partial(jax.jit, static_argnames="cfg")
+def _gt_cell_kernel(belief: tracking.Belief, gt_pose, cfg: tracking.TrackerConfig):
+    return jnp.round(tracking.world_to_cell(belief, gt_pose, cfg)).astype(jnp.int32)
+
+
 def _gt_cell(belief: tracking.Belief, gt_pose, cfg: tracking.TrackerConfig) -> np.ndarray:
-    """The GT's rounded window cell ``(k, h, w)`` (outside ``[0, N)`` beyond the window)."""
-    cell = tracking.world_to_cell(belief, jnp.asarray(gt_pose, jnp.float32), cfg)
-    return np.round(np.asarray(cell)).astype(np.int64)
+    """The GT's rounded window cell ``(k, h, w)`` (outside ``[0, N)`` beyond the window): one
+    program (eager, its dozen small ops cost more than the rest of the read-out)."""
+    return np.asarray(_gt_cell_kernel(belief, jnp.asarray(gt_pose, jnp.float32), cfg), np.int64)
 
 
 @jax.jit
