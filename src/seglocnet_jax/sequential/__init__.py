@@ -6,7 +6,7 @@ Bayes filter over the solver's pose grid (:mod:`seglocnet_jax.tracking`), frame 
     frame 0:  belief = uniform over the 129 x 129 x K cells around the record's stored prior
               (the prior box); with eval.tracker.acquire_size (off by default) inside the
               257 x 257 acquisition window; with eval.tracker.hypotheses > 1 its posterior is
-              split among its modes, a window each (tracking.hypotheses), every later step
+              split among windows that cover it (tracking.hypotheses), every later step
               below then runs per window and the windows are weighted by their evidence
     frame t:  belief = predict(belief, odometry[t])          # the vehicle's own odometry
               tile   = the map raster cut around the belief's window centre (never the truth)

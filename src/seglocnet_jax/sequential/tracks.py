@@ -220,18 +220,6 @@ class _Slot:
         """The heaviest window's belief."""
         return self.beliefs[0]
 
-    @belief.setter
-    def belief(self, value):
-        self.beliefs[0] = value
-
-    @property
-    def map_cell(self):
-        return self.map_cells[0]
-
-    @map_cell.setter
-    def map_cell(self, value):
-        self.map_cells[0] = value
-
 
 def track_split(
     step: LocalizeStep,
@@ -361,7 +349,7 @@ def track_split(
                 est = jax.device_get(tracking.estimate(slot.belief, slot.cfg))
             else:
                 est = jax.device_get(slot.infos[0]["estimate"])
-            mode = _readout(slot.belief, jnp.asarray(slot.map_cell), slot.cfg)
+            mode = _readout(slot.belief, jnp.asarray(slot.map_cells[0]), slot.cfg)
             above, log_p = hypotheses.mixture_readout(
                 slot.beliefs,
                 slot.log_w,
@@ -441,11 +429,12 @@ def _next_window(slot: _Slot, lost: bool, cfg, wide_cfg, raster) -> None:
     if lost:
         losses = slot.belief.losses
         belief = start_belief(raster, tracking.window_centre(slot.belief, slot.cfg), cfg)
-        slot.belief, slot.cfg, slot.wide = belief._replace(losses=losses), wide_cfg, True
-        slot.held, slot.map_cell = 0, None
+        slot.beliefs, slot.map_cells = [belief._replace(losses=losses)], [None]
+        slot.cfg, slot.wide, slot.held = wide_cfg, True, 0
     elif slot.wide:
-        belief, kept = tracking.narrow(slot.belief, wide_cfg, cfg, map_cell=slot.map_cell)
+        belief, kept = tracking.narrow(slot.belief, wide_cfg, cfg, map_cell=slot.map_cells[0])
         slot.held = slot.held + 1 if float(kept) >= cfg.acquire_mass else 0
         if slot.held >= cfg.acquire_frames:
-            slot.belief, slot.cfg, slot.wide, slot.held = belief, cfg, False, 0
-            slot.map_cell = None  # the next predict finds the mode in the new window
+            # the next predict finds the mode in the new window
+            slot.beliefs, slot.map_cells = [belief], [None]
+            slot.cfg, slot.wide, slot.held = cfg, False, 0

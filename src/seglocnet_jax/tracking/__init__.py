@@ -40,7 +40,8 @@ One frame of a drive::
   the box then moves the window onto it without losing the truth's cells; :func:`narrow` cuts
   the belief to the ``size`` window around its mode once that box holds ``acquire_mass``.
 * several hypotheses (``hypotheses`` > 1, :mod:`~seglocnet_jax.tracking.hypotheses`): frame
-  0's posterior is split among its strongest modes, each tracked in a window of its own; the
+  0's posterior is split among windows that cover it greedily (the first is the single
+  window's), each tracked as a filter of its own; the
   windows are weighted by their evidence (a mixture, exact up to the cells that leave a window)
   and pruned / merged; the estimate is the heaviest window's mode.
 * odometry (:mod:`~seglocnet_jax.tracking.odometry`): the motion between frames as wheel

@@ -18,7 +18,8 @@ normalized over its own cells), and the weights follow Bayes' rule exactly:
   weights added, the lighter one's cells dropped: they describe the same place).
 
 The filter's estimate is the mode of the heaviest window; the credible regions are the
-mixture's (:func:`mixture_readout`).
+mixture's (:func:`mixture_readout`). A window whose update detects a track loss is re-widened
+by ``update`` as a single window would be; its weight takes the evidence of the prior it had.
 """
 
 from __future__ import annotations
