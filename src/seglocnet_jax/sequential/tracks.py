@@ -306,6 +306,7 @@ def track_split(
                         slot.scale.apply(slot.odometry[slot.t]),
                         slot.cfg,
                         map_cell=slot.map_cells[i],
+                        marginal_xy=_marginal(slot, i),
                     )
                     if len(slot.beliefs) > 1:  # the mass that left the window
                         slot.log_w[i] = slot.log_w[i] + jnp.log(
@@ -335,7 +336,9 @@ def track_split(
         t3 = time.perf_counter()
         for r, (j, i) in enumerate(owners):
             slot = slots[active[j]]
-            slot.beliefs[i], info = tracking.update(slot.beliefs[i], log_lik[r], slot.cfg)
+            slot.beliefs[i], info = tracking.update(
+                slot.beliefs[i], log_lik[r], slot.cfg, evidence=cfg.hypotheses > 1
+            )
             slot.map_cells[i] = info["estimate"]["map_cell"]
             slot.infos[i] = info
             if cfg.hypotheses > 1:
@@ -392,6 +395,14 @@ def track_split(
     return [done[d.sequence_id] for d in drives], timing
 
 
+def _marginal(slot: _Slot, i: int):
+    """Window ``i``'s (x, y) marginal from its last update (None: predict computes it), for
+    the mass-keeping window move (``cfg.recentre_keep``)."""
+    if not slot.cfg.recentre_keep or slot.infos[i] is None:
+        return None
+    return slot.infos[i]["estimate"]["marginal_xy"]
+
+
 def _weigh_windows(slot: _Slot, cfg: tracking.TrackerConfig, *, first: bool) -> None:
     """After a frame's update: with ``cfg.hypotheses`` > 1, frame 0's posterior is split among
     its modes (:func:`tracking.hypotheses.split_modes`); then the windows are pruned and merged
@@ -429,12 +440,12 @@ def _next_window(slot: _Slot, lost: bool, cfg, wide_cfg, raster) -> None:
     if lost:
         losses = slot.belief.losses
         belief = start_belief(raster, tracking.window_centre(slot.belief, slot.cfg), cfg)
-        slot.beliefs, slot.map_cells = [belief._replace(losses=losses)], [None]
+        slot.beliefs, slot.map_cells, slot.infos = [belief._replace(losses=losses)], [None], [None]
         slot.cfg, slot.wide, slot.held = wide_cfg, True, 0
     elif slot.wide:
         belief, kept = tracking.narrow(slot.belief, wide_cfg, cfg, map_cell=slot.map_cells[0])
         slot.held = slot.held + 1 if float(kept) >= cfg.acquire_mass else 0
         if slot.held >= cfg.acquire_frames:
             # the next predict finds the mode in the new window
-            slot.beliefs, slot.map_cells = [belief], [None]
+            slot.beliefs, slot.map_cells, slot.infos = [belief], [None], [None]
             slot.cfg, slot.wide, slot.held = cfg, False, 0
