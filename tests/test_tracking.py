@@ -182,58 +182,6 @@ def test_predict_moves_the_peak_by_the_motion(k0):
     np.testing.assert_allclose(float(np.asarray(moved.prob).sum()), 1.0, atol=1e-5)
 
 
-def test_keep_mass_move_is_the_nearest_move_keeping_enough_by_brute_force():
-    rng = np.random.default_rng(7)
-    n = CFG.size
-    p_xy = rng.random((n, n)) ** 6
-    p_xy[40:60, 90:125] += 0.2  # a heavy patch off centre
-    p_xy = (p_xy / p_xy.sum()).astype(np.float32)
-    want, motion_cells = np.array([-50, 40]), np.array([3, -2])
-    # Brute force: move m keeps rows / columns [m - motion, m - motion + n) of p_xy.
-    u = np.arange(-(n - 1), n)
-    kept = np.zeros((len(u), len(u)))
-    for i, a in enumerate(u):
-        rows = p_xy[max(a, 0) : min(a + n, n)].sum(axis=0, dtype=np.float64)  # (n,)
-        kept[i] = np.convolve(np.pad(rows, n - 1), np.ones(n), mode="valid")[: len(u)]
-    for keep in (0.5, 0.9, 0.99):
-        move = np.asarray(motion._keep_mass_move(jnp.asarray(p_xy), want, motion_cells, keep))
-        ok = kept >= keep * kept.max() - 1e-5
-        dist = (u[:, None] - (want - motion_cells)[0]) ** 2 + (
-            u[None, :] - (want - motion_cells)[1]
-        ) ** 2
-        i, j = move - motion_cells + n - 1
-        assert ok[i, j], (keep, move)
-        assert dist[i, j] <= dist[ok].min(), (keep, move)
-
-
-def test_recentre_keep_holds_a_broad_belief_and_follows_a_concentrated_one():
-    # A belief spread over the window whose mode is a cell near its far corner (3x the rest):
-    # following the mode drops two thirds of the mass; with recentre_keep the window moves
-    # only as far as keeping 0.99 of the most any move could keep allows.
-    odo = np.array([2.0, 0.0, 0.0])
-    prob = np.full((K, CFG.size, CFG.size), 1.0, np.float32)
-    prob[3, 5, 120] = 3.0
-    broad = tr.init_belief(CFG, (300.0, 200.0))._replace(prob=prob / prob.sum())
-    keep = tr.TrackerConfig(num_rotations=K, recentre_keep=0.99)
-    _, mode_info = tr.predict(broad, odo, CFG)
-    assert float(mode_info["dropped"]) > 0.6
-    est = tr.estimate(broad, keep)
-    moved, info = tr.predict(broad, odo, keep, map_cell=est["map_cell"])
-    assert float(info["dropped"]) < 0.1
-    given, _ = tr.predict(broad, odo, keep, marginal_xy=est["marginal_xy"])
-    np.testing.assert_array_equal(given.prob, moved.prob)  # the update's marginal: the same
-    # A concentrated belief: the mode's move either way, the same prediction.
-    delta = _delta(CFG, (6, 30, 100))
-    a, a_info = tr.predict(delta, odo, CFG)
-    b, b_info = tr.predict(delta, odo, keep)
-    np.testing.assert_array_equal(a_info["shift"], b_info["shift"])
-    np.testing.assert_array_equal(a.prob, b.prob)
-    with pytest.raises(ValueError, match="marginal_xy"):
-        tr.predict(broad, odo, keep, marginal_xy=np.zeros((5, 5)))
-    with pytest.raises(ValueError, match="recentre_keep"):
-        tr.TrackerConfig(recentre_keep=1.5)
-
-
 def test_narrow_kernels_equal_the_full_width_and_a_given_map_cell_changes_nothing(monkeypatch):
     # predict drops Gaussian taps below 1e-7 of the central weight (here 1-2 of the 3 each
     # side): the result equals the full-width kernels' to float32 rounding.

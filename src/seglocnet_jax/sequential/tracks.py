@@ -306,7 +306,6 @@ def track_split(
                         slot.scale.apply(slot.odometry[slot.t]),
                         slot.cfg,
                         map_cell=slot.map_cells[i],
-                        marginal_xy=_marginal(slot, i),
                     )
                     if len(slot.beliefs) > 1:  # the mass that left the window
                         slot.log_w[i] = slot.log_w[i] + jnp.log(
@@ -393,14 +392,6 @@ def track_split(
         fill()
     bar.close()
     return [done[d.sequence_id] for d in drives], timing
-
-
-def _marginal(slot: _Slot, i: int):
-    """Window ``i``'s (x, y) marginal from its last update (None: predict computes it), for
-    the mass-keeping window move (``cfg.recentre_keep``)."""
-    if not slot.cfg.recentre_keep or slot.infos[i] is None:
-        return None
-    return slot.infos[i]["estimate"]["marginal_xy"]
 
 
 def _weigh_windows(slot: _Slot, cfg: tracking.TrackerConfig, *, first: bool) -> None:

@@ -65,11 +65,6 @@ class TrackerConfig:
         distances; the prediction then scales the odometry by it); 0: the raw odometry.
       hypothesis_prune: nats; a window whose log weight falls this far below the best one's
         is dropped.
-      recentre_keep: the window's move at predict: the one that puts the predicted mode at
-        its centre when that keeps at least this fraction of the most (x, y) mass any move
-        could keep, else the move nearest it that does (a belief still spread over the prior
-        box keeps its window where its mass is, instead of following a mode that says
-        little); 0: always the mode's move (a concentrated belief: the same move either way).
     """
 
     num_rotations: int = geometry.NUM_ROTATIONS
@@ -95,7 +90,6 @@ class TrackerConfig:
     hypotheses: int = 1
     hypothesis_prune: float = 10.0
     scale_prior_m: float = 200.0
-    recentre_keep: float = 0.0
 
     def __post_init__(self):
         if self.num_rotations < 1:
@@ -128,8 +122,6 @@ class TrackerConfig:
             raise ValueError(f"hypotheses must be >= 1, got {self.hypotheses}")
         if self.scale_prior_m < 0:
             raise ValueError(f"scale_prior_m must be >= 0, got {self.scale_prior_m}")
-        if not 0.0 <= self.recentre_keep <= 1.0:
-            raise ValueError(f"recentre_keep must be in [0, 1], got {self.recentre_keep}")
         if self.hypothesis_prune <= 0:
             raise ValueError(f"hypothesis_prune must be > 0, got {self.hypothesis_prune}")
         if self.hypotheses > 1 and (self.outlier > 0 or self.acquire_size):

@@ -130,42 +130,7 @@ def _widths(odometry: np.ndarray, cfg: TrackerConfig) -> tuple[int, int]:
     return reach(sigma_xy), reach(sigma_k)
 
 
-def _marginal_xy(prob):
-    """``sum_k prob[k]`` as ``(N, N)``: a matrix-vector product (XLA's CPU reduction over the
-    major axis is ~30x slower)."""
-    k_dim, n, _ = prob.shape
-    ones = jnp.ones((1, k_dim), prob.dtype)
-    return (ones @ prob.reshape(k_dim, n * n)).reshape(n, n)
-
-
-def _keep_mass_move(p_xy, want, motion, keep: float):
-    """The window move ``(rows, cols)`` nearest ``want`` among those that keep at least
-    ``keep`` of the most (x, y) mass any move could keep.
-
-    The predicted marginal is taken as ``p_xy`` translated by ``motion`` (the MAP slice's
-    motion, rounded to cells: exact for a belief concentrated on one yaw, within one step's
-    travel otherwise). A move ``m`` keeps the mass of rows ``[m0 - motion0, m0 - motion0 + N)``
-    (and likewise columns) of ``p_xy``: every move's kept mass from one integral image
-    ``(N + 1, N + 1)``, evaluated over all ``(2N - 1)^2`` moves that keep any cell."""
-    n = p_xy.shape[0]
-    integral = jnp.pad(jnp.cumsum(jnp.cumsum(p_xy, axis=0), axis=1), ((1, 0), (1, 0)))
-    u = jnp.arange(-(n - 1), n)  # the first source row / column of the moved window
-    lo, hi = jnp.clip(u, 0, n), jnp.clip(u + n, 0, n)
-    kept = (
-        integral[hi[:, None], hi[None, :]]
-        - integral[lo[:, None], hi[None, :]]
-        - integral[hi[:, None], lo[None, :]]
-        + integral[lo[:, None], lo[None, :]]
-    )  # (2N - 1, 2N - 1) over (u_row, u_col)
-    ok = kept >= keep * kept.max()
-    target = want - motion  # the source offset of the wanted move
-    dist = (u[:, None] - target[0]) ** 2 + (u[None, :] - target[1]) ** 2
-    best = jnp.argmin(jnp.where(ok, dist, jnp.iinfo(jnp.int32).max))
-    chosen = jnp.stack([u[best // (2 * n - 1)], u[best % (2 * n - 1)]])
-    return (chosen + motion).astype(jnp.int32)
-
-
-def _motion_plan(prob, odometry, cfg: TrackerConfig, widths, map_cell=None, marginal_xy=None):
+def _motion_plan(prob, odometry, cfg: TrackerConfig, widths, map_cell=None):
     """Per-slice shifts (cells) and kernels of one prediction, and the window shift."""
     r_xy, r_k = widths
     res = cfg.resolution
@@ -175,12 +140,8 @@ def _motion_plan(prob, odometry, cfg: TrackerConfig, widths, map_cell=None, marg
     dh = -(sin * fwd + cos * left) / res  # (K,) rows: north is -h
     dw = (cos * fwd - sin * left) / res  # (K,) cols: east is +w
     k, h, w = _map_cell(prob) if map_cell is None else map_cell
-    # The window follows the predicted MAP: the MAP cell moved by its own slice's motion ...
+    # The window follows the predicted MAP: the MAP cell moved by its own slice's motion.
     move = jnp.round(jnp.stack([h + dh[k], w + dw[k]]) - cfg.centre).astype(jnp.int32)
-    if cfg.recentre_keep > 0:  # ... as far as the mass it keeps allows
-        p_xy = _marginal_xy(prob) if marginal_xy is None else marginal_xy
-        motion = jnp.round(jnp.stack([dh[k], dw[k]])).astype(jnp.int32)
-        move = _keep_mass_move(p_xy, move, motion, cfg.recentre_keep)
     sh, sw = dh - move[0], dw - move[1]
     sigma_xy, sigma_k = _noise(odometry, cfg)
     dk = dyaw / (2 * math.pi / cfg.num_rotations)
@@ -202,12 +163,10 @@ def _motion_plan(prob, odometry, cfg: TrackerConfig, widths, map_cell=None, marg
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "widths"))
-def _plan_rows_kernel(prob, odometry, map_cell, marginal_xy, cfg: TrackerConfig, widths):
+def _plan_rows_kernel(prob, odometry, map_cell, cfg: TrackerConfig, widths):
     """The plan and the row pass: one program (the barrier keeps the plan's small arrays from
     being recomputed inside the row pass's loop)."""
-    plan, move = jax.lax.optimization_barrier(
-        _motion_plan(prob, odometry, cfg, widths, map_cell, marginal_xy)
-    )
+    plan, move = jax.lax.optimization_barrier(_motion_plan(prob, odometry, cfg, widths, map_cell))
     rows = _shift_rows(prob, plan["rows"], plan["row_w"], widths[0], plan["rot"])
     return rows, plan, move
 
@@ -230,9 +189,7 @@ def _rotations_kernel(prob, mass, weights, radius):
     return _blur_rotations(prob, weights / jnp.maximum(mass, 1e-30), radius)
 
 
-def predict(
-    belief: Belief, odometry, cfg: TrackerConfig, *, map_cell=None, marginal_xy=None
-) -> tuple[Belief, dict]:
+def predict(belief: Belief, odometry, cfg: TrackerConfig, *, map_cell=None) -> tuple[Belief, dict]:
     """Moves the belief by one frame's odometry and re-centres the window on the estimate.
 
     Each yaw slice is translated by the odometry rotated by its yaw and blurred by the motion
@@ -246,15 +203,9 @@ def predict(
       map_cell: the MAP cell ``(k, h, w)`` of ``belief`` when the caller has it (the
         ``estimate["map_cell"]`` that :func:`update` returned with this belief): saves a pass
         over the volume. ``None``: computed here.
-      marginal_xy: the belief's ``(N, N)`` (x, y) marginal when the caller has it (the
-        ``estimate["marginal_xy"]`` of :func:`update`); used with ``cfg.recentre_keep`` > 0
-        only, else computed here (one more pass).
 
     Returns:
-      The predicted belief (window moved so that the predicted MAP cell is its centre, or with
-      ``cfg.recentre_keep`` > 0 the move nearest that among those keeping at least
-      ``recentre_keep`` of the most mass a move could keep: a broad belief, whose mode says
-      little, keeps its window where its mass is) and
+      The predicted belief (window moved so that the predicted MAP cell is its centre) and
       ``{"dropped": mass that left the window (renormalized away), "shift": (2,) int32 window
       move (rows, cols)}``.
     """
@@ -262,14 +213,7 @@ def predict(
     widths = _widths(odometry, cfg)
     if map_cell is not None:
         map_cell = jnp.asarray(map_cell, jnp.int32)
-    if marginal_xy is not None:
-        marginal_xy = jnp.asarray(marginal_xy, jnp.float32)
-        if marginal_xy.shape != (cfg.size, cfg.size):
-            raise ValueError(
-                f"marginal_xy must be the window's ({cfg.size}, {cfg.size}) marginal, got "
-                f"{marginal_xy.shape}"
-            )
-    rows, plan, move = _plan_rows_kernel(belief.prob, odometry, map_cell, marginal_xy, cfg, widths)
+    rows, plan, move = _plan_rows_kernel(belief.prob, odometry, map_cell, cfg, widths)
     prob, mass = _cols_kernel(rows, plan["cols"], plan["col_w"], widths[0])
     prob = _rotations_kernel(prob, mass, plan["rot_w"], widths[1])
     belief = belief._replace(prob=prob, centre=belief.centre + move)
