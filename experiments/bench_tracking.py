@@ -1,4 +1,5 @@
-"""Benchmarks one frame of the sequential filter (``seglocnet_jax.tracking``) at paper sizes.
+"""Benchmarks the sequential filter (``seglocnet_jax.tracking``): one frame at paper sizes, and
+whole drives with the tiny network.
 
 A frame is predict (motion, blur, window re-centring) + update (one score volume's
 log-likelihood, a full ``(K, 129, 129)`` volume every frame; it returns the posterior's
@@ -11,6 +12,18 @@ has it (``--map-cell computed``: predict finds it itself, one more pass over the
 and those after a loss), plus the :func:`tracking.narrow` test every such frame runs
 (``narrow_ms``, not part of the frame).
 
+The whole-drive rate (``--drives N``, 0: skip): N synthetic drives of ``--drive-frames`` frames
+(5 m apart over a random 2-channel city raster) through :func:`sequential.track_split`, the
+lockstep loop ``evaluate eval.mode=sequential`` runs: per frame the tiny network's localize step
+returns the score volume of the tile cut around the filter's estimate (``--batch`` drives per
+step), and the filter predicts and updates. The network is the main job's preset (``tiny``,
+fused, seg) at the simulator's sizes (6 x 64 x 160 images, 32,768 LiDAR points), its weights
+random (the cost does not depend on them; the likelihood is then noise, so the filter may take
+its loss path more often than with a trained model: ``drive_losses`` counts it). Sensor frames
+cycle through 8 synthetic ones. Reported: frames per second of the whole loop, and its
+localize / filter / data milliseconds per frame (the loop's own timing, which leaves out its
+first 2 steps: compilation).
+
 Milliseconds per frame (compile excluded; median and best over the frames) and per stage
 (``estimate_ms``: a standalone :func:`tracking.estimate`, not part of the frame), wall clock
 and CPU time of this process (all its threads: on a loaded machine the wall clock also counts
@@ -19,7 +32,7 @@ figure depends on what else runs on the CPU. Progress goes to stderr; the last s
 JSON.
 
     python experiments/bench_tracking.py [--num-rotations 256] [--frames 20] [--map-cell given]
-        [--window tracking|acquisition]
+        [--window tracking|acquisition] [--drives 4] [--drive-frames 24] [--batch 4]
 """
 
 from __future__ import annotations
@@ -35,7 +48,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from seglocnet_jax import tracking
+from seglocnet_jax import evaluation, geometry, maps, sequential, solver, tracking
+from seglocnet_jax.model import api, synthetic
+from seglocnet_jax.model.config import preset
+from seglocnet_jax.training.step import HOST_ONLY_KEYS
 
 
 def _likelihood(cfg: tracking.TrackerConfig, belief, pose, rng) -> jax.Array:
@@ -115,6 +131,112 @@ def bench(
     return result
 
 
+class _SyntheticSplit:
+    """What :func:`sequential.track_split` reads of a split: the city rasters and the loader's
+    rows (sensor inputs, the tile around the stored prior, the GT pose) by record index."""
+
+    def __init__(self, raster, drives: list, sensors: dict):
+        self.rasters = {raster.name: raster}
+        self.drives = {int(r): (d, t) for d in drives for t, r in enumerate(d.records)}
+        self.sensors = sensors
+        self.pool = len(next(iter(sensors.values())))
+
+    def rows(self, indices) -> list[dict]:
+        out = []
+        for i in indices:
+            drive, t = self.drives[int(i)]
+            raster = self.rasters[drive.city]
+            tile, centre = raster.tile(*drive.priors[t])
+            pose = drive.poses[t]
+            row = {k: v[int(i) % self.pool] for k, v in self.sensors.items()}
+            row.update(
+                tile=tile.astype(np.float32),
+                tile_center=np.asarray(centre, np.float64),
+                pose_tile=np.array([*(pose[:2] - centre), pose[2]], np.float32),
+                pose=pose,
+                frame_index=np.int64(t),
+            )
+            out.append(row)
+        return out
+
+
+def _synthetic_drives(num: int, frames: int, raster, rng) -> list:
+    """``num`` gently curving drives, 5 m between frames, inside the raster; each frame's
+    stored prior within +-20 m of the truth."""
+    drives, grid = [], raster.grid
+    x_max, y_min = grid.x_min + grid.width * 0.5, grid.y_max - grid.height * 0.5
+    for d in range(num):
+        yaw, rate = rng.uniform(-np.pi, np.pi), rng.uniform(-0.02, 0.02)
+        yaws = yaw + rate * np.arange(frames)
+        steps = 5.0 * np.stack([np.cos(yaws), np.sin(yaws)], 1)
+        xy = np.cumsum(steps, 0) - steps[0]
+        xy += [(grid.x_min + x_max) / 2, (grid.y_max + y_min) / 2] - xy.mean(0)
+        poses = np.concatenate([xy, yaws[:, None]], 1)
+        drives.append(
+            sequential.Drive(
+                sequence_id=f"bench-d{d:03d}",
+                city=raster.name,
+                records=np.arange(frames) + d * frames,
+                frame_index=np.arange(frames),
+                timestamps=np.arange(frames) * 0.5,
+                poses=poses,
+                priors=xy + rng.uniform(-20.0, 20.0, (frames, 2)),
+            )
+        )
+    return drives
+
+
+def bench_drives(num_drives: int, frames: int, batch_size: int, seed: int = 0) -> dict:
+    """Whole drives through the lockstep loop with the tiny network (see the module docstring)."""
+    rng = np.random.default_rng(seed)
+    side = 1600  # pixels: an 800 m city
+    mask = (rng.random((2, side // 8, side // 8)) > 0.6).repeat(8, 1).repeat(8, 2)
+    grid = geometry.RasterGrid(x_min=0.0, y_max=side * 0.5, height=side, width=side)
+    raster = maps.CityRaster(mask.astype(np.uint8), grid, ("road", "building"), "bench-city")
+    sensors = synthetic.make_batch(seed, 8, image_hw=(64, 160), num_points=32768)
+    sensors = {k: v for k, v in sensors.items() if k not in HOST_ONLY_KEYS + ("tile", "pose_tile")}
+    model_cfg = preset("tiny")
+    example = {k: v[:1] for k, v in sensors.items()}
+    example["tile"] = np.zeros((1, 2, geometry.TILE_SIZE, geometry.TILE_SIZE), np.float32)
+    example["pose_tile"] = np.zeros((1, 3), np.float32)
+    params = api.init(jax.random.key(seed), example, model_cfg)
+    step = evaluation.make_localize_step(model_cfg, solver.SolverConfig())
+
+    def place(batch):
+        return {k: jnp.asarray(v) for k, v in batch.items() if k not in HOST_ONLY_KEYS}
+
+    drives = _synthetic_drives(num_drives, frames, raster, rng)
+    cfg = sequential.tracker_config(evaluation.EvalConfig(), geometry.NUM_ROTATIONS)
+    t0 = time.perf_counter()
+    tracks, timing = sequential.track_split(
+        step,
+        params,
+        _SyntheticSplit(raster, drives, sensors),
+        drives,
+        cfg=cfg,
+        odometry_cfg=tracking.OdometryConfig(),
+        odometry_seed=seed,
+        temperature=1383.0,  # the main job's filter temperature (docs/sequential.md)
+        batch_size=batch_size,
+        place=place,
+        desc="drives",
+        single=False,
+    )
+    wall = time.perf_counter() - t0
+    n = timing["frames"]
+    per_frame = {k: 1000 * timing[f"{k}_s"] / n for k in ("localize", "filter", "data")}
+    return {
+        "drives": num_drives,
+        "drive_frames": frames,
+        "drive_batch": batch_size,
+        "drive_timed_frames": n,
+        "drive_frames_per_s": round(1000 / sum(per_frame.values()), 2),
+        **{f"drive_{k}_ms_per_frame": round(v, 1) for k, v in per_frame.items()},
+        "drive_wall_s_with_compile": round(wall, 1),
+        "drive_losses": int(sum(t.lost.sum() for t in tracks)),
+    }
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--num-rotations", type=int, default=256)
@@ -131,10 +253,19 @@ def main(argv=None) -> None:
         default="tracking",
         help="the 129-cell tracking window or the 257-cell acquisition window",
     )
+    parser.add_argument(
+        "--drives", type=int, default=4, help="synthetic drives for the whole-drive rate (0: skip)"
+    )
+    parser.add_argument("--drive-frames", type=int, default=24, help="frames per drive")
+    parser.add_argument("--batch", type=int, default=4, help="drives per localize step")
     args = parser.parse_args(argv)
+    if args.drives and args.drive_frames * args.drives <= 2 * args.batch:
+        parser.error("--drives x --drive-frames must exceed the 2 compiling steps' frames")
     print(f"devices: {jax.devices()}", file=sys.stderr)
     load_before = os.getloadavg()[0]
     result = bench(args.num_rotations, args.frames, map_cell=args.map_cell, window=args.window)
+    if args.drives:
+        result.update(bench_drives(args.drives, args.drive_frames, args.batch))
     result.update(
         device=str(jax.devices()[0].platform),
         cpu_count=os.cpu_count(),
