@@ -415,6 +415,8 @@ def test_update_evidence_on_request_is_the_log_sum_of_prior_times_likelihood():
     plain_post, plain = tr.update(belief, ll, CFG)
     assert "log_evidence" not in plain  # one pass less unless asked for
     np.testing.assert_array_equal(plain_post.prob, post.prob)
+    with pytest.raises(ValueError, match="outlier"):
+        tr.update(belief, ll, tr.TrackerConfig(num_rotations=K, outlier=0.1), evidence=True)
 
 
 def test_credible_region_matches_sorting():

@@ -159,6 +159,11 @@ def update(
     expected = (cfg.num_rotations, cfg.size, cfg.size)
     if log_lik.shape != expected:
         raise ValueError(f"log_likelihood must be {expected}, got {log_lik.shape}")
+    if evidence and cfg.outlier > 0:
+        raise ValueError(
+            f"evidence needs cfg.outlier = 0 (got {cfg.outlier}): the robust likelihood is "
+            "normalized per window, so its sum is no evidence"
+        )
     new, info = _update_kernel(belief, log_lik, cfg)
     log_z = info.pop("log_z")
     if evidence:
