@@ -130,6 +130,7 @@ def small_config(root, **kw) -> pp.PrepareConfig:
         split=splits.SplitConfig(stripe_width=25.0),
         num_drives=0,  # drive splits are opt-in here (tests of drives turn them on, tiny)
         num_val_drives=0,
+        num_unseen_val_drives=0,
     )
     return pp.PrepareConfig(**(base | kw))
 

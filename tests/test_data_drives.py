@@ -1,5 +1,6 @@
-"""Drive splits: whole drives in the test city (``drives``) and main-city drives clear of the train
-frames (``drives_val``) with sequence metadata in every record; the default preset finds them in
+"""Drive splits: whole drives in the test city (``drives``), main-city drives clear of the train
+frames (``drives_val``) and test-city drives clear of every test frame there
+(``drives_val_unseen``) with sequence metadata in every record; the default preset finds them in
 the embedded cities; the other splits are unchanged by them."""
 
 import dataclasses
@@ -22,6 +23,7 @@ from seglocnet_jax.sim import trajectory as tr
 TINY = dict(
     num_drives=2,
     num_val_drives=2,
+    num_unseen_val_drives=2,
     drive_spacing_m=5.0,
     drive_length_m=40.0,  # 9 frames
     min_val_drive_m=20.0,  # >= 5 frames
@@ -49,9 +51,12 @@ def with_drives(tmp_path_factory):
 def test_drive_splits_hold_whole_drives_in_order(with_drives):
     man = mf.read_manifest(with_drives)
     assert sorted(man["splits"]) == sorted(small_config("x", **TINY).split_names())
-    assert sorted(man["splits"]) == ["drives", "drives_val", "kouvola", "test", "train", "val"]
+    assert sorted(man["splits"]) == [
+        "drives", "drives_val", "drives_val_unseen", "kouvola", "test", "train", "val"
+    ]  # fmt: skip
     assert man["splits"]["drives"]["cities"] == {"kouvola": 18}  # 2 drives x 9 frames
     assert set(man["splits"]["drives_val"]["cities"]) == {"helsinki"}
+    assert set(man["splits"]["drives_val_unseen"]["cities"]) == {"kouvola"}
     rows = _rows(with_drives, "drives")
     want_seq = [f"kouvola-drives-d{d:03d}" for d in range(2) for _ in range(9)]
     assert rows["sequence_id"].tolist() == want_seq  # ordered by drive, then frame
@@ -79,10 +84,25 @@ def test_drives_val_frames_are_clear_of_every_train_frame(with_drives):
     assert all(s.startswith("helsinki-p") for s in train["sequence_id"])
 
 
+def test_drives_val_unseen_frames_are_clear_of_every_test_city_frame(with_drives):
+    unseen = _rows(with_drives, "drives_val_unseen")
+    tested = np.concatenate([_rows(with_drives, s)["pose"][:, :2] for s in ("drives", "kouvola")])
+    sp.check_disjoint(
+        {"tested": tested, "drives_val_unseen": unseen["pose"][:, :2]},
+        min_distance=2 * sp.BEV_RADIUS + 1.0,  # + split.margin
+    )
+    seqs = np.unique(unseen["sequence_id"])
+    assert seqs.tolist() == ["kouvola-drives_val_unseen-d000", "kouvola-drives_val_unseen-d001"]
+    for seq in seqs:
+        mine = unseen["sequence_id"] == seq
+        assert 5 <= mine.sum() <= 9  # min_val_drive_m .. drive_length_m
+        assert unseen["frame_index"][mine].tolist() == list(range(mine.sum()))
+
+
 def test_other_splits_are_unchanged_by_the_drives(with_drives, tmp_path):
     plain = pp.prepare(small_config(tmp_path), Factory(), variants=())
     a, b = mf.read_manifest(with_drives)["splits"], mf.read_manifest(plain)["splits"]
-    assert set(a) - set(b) == {"drives", "drives_val"}
+    assert set(a) - set(b) == {"drives", "drives_val", "drives_val_unseen"}
     for split in b:  # same poses, priors, renders, metadata: the same bytes
         assert a[split] == b[split], split
 
@@ -107,6 +127,14 @@ def test_drives_val_that_cannot_be_found_is_named():
     msg = str(err.value)
     assert msg.startswith("helsinki: found 0 of data.num_val_drives=2 drives_val")
     assert "data.min_val_drive_m" in msg and "data.num_val_drives=0" in msg
+    with pytest.raises(sp.SplitError) as err:
+        dr.plan_val_drives(
+            Factory()("kouvola"), cfg, "kouvola", everywhere.reshape(-1, 2),
+            name=dr.UNSEEN_VAL_DRIVES,
+        )  # fmt: skip
+    msg = str(err.value)
+    assert msg.startswith("kouvola: found 0 of data.num_unseen_val_drives=2 drives_val_unseen")
+    assert "from every test frame" in msg and "data.num_unseen_val_drives=0" in msg
 
 
 def test_clear_runs_are_maximal():
@@ -119,6 +147,7 @@ def test_clear_runs_are_maximal():
     "kw, key",
     [
         (dict(num_drives=-1), "data.num_drives"),
+        (dict(num_unseen_val_drives=-1), "data.num_unseen_val_drives"),
         (dict(drive_spacing_m=0.0), "data.drive_spacing_m"),
         (dict(drive_length_m=2.0), "data.drive_length_m"),
         (dict(min_val_drive_m=2000.0), "data.min_val_drive_m"),
@@ -131,11 +160,20 @@ def test_bad_drive_config_is_named(kw, key):
 
 def test_split_names_follow_the_config():
     assert pp.PrepareConfig().split_names() == [
-        "train", "val", "test", "kouvola", "drives", "drives_val"
+        "train", "val", "test", "kouvola", "drives", "drives_val", "drives_val_unseen"
     ]  # fmt: skip
-    assert pp.PrepareConfig(test_city=None).split_names() == ["train", "val", "test", "drives_val"]
-    none = pp.PrepareConfig(num_drives=0, num_val_drives=0)
+    no_city = pp.PrepareConfig(test_city=None)  # no test city: no drives there either
+    assert no_city.split_names() == ["train", "val", "test", "drives_val"]
+    none = pp.PrepareConfig(num_drives=0, num_val_drives=0, num_unseen_val_drives=0)
     assert none.split_names() == ["train", "val", "test", "kouvola"]
+
+
+def test_unseen_drives_enter_the_identity_only_when_on():
+    # Off, the key is not in the identity, so a dataset prepared before it existed still matches.
+    off = pp.PrepareConfig(num_unseen_val_drives=0).identity()
+    assert "num_unseen_val_drives" not in off
+    on = pp.PrepareConfig(num_unseen_val_drives=4).identity()
+    assert on["num_unseen_val_drives"] == 4 and {k: v for k, v in on.items() if k != "num_unseen_val_drives"} == off
 
 
 class RoadSource:
@@ -161,7 +199,7 @@ class RoadSource:
 
 
 def test_the_default_preset_finds_its_drives_in_the_embedded_cities():
-    cfg = pp.PrepareConfig()  # data=quick: 8 x 1 km in Kouvola, 4 in Helsinki clear of train
+    cfg = pp.PrepareConfig()  # data=quick: 8 x 1 km in Kouvola, 4 clear of them, 4 in Helsinki
     helsinki, kouvola = RoadSource("helsinki", cfg.seed), RoadSource("kouvola", cfg.seed)
     train, val, test = pp.plan_main_city(helsinki, cfg)
     # The pool splits' sequences are the simulator's short routes.
@@ -178,3 +216,9 @@ def test_the_default_preset_finds_its_drives_in_the_embedded_cities():
     step = np.linalg.norm(np.diff(drives.poses[:, :2], axis=0), axis=1)
     within = np.diff(drives.frame_index) == 1
     assert step[within].max() < 5.0 + 6.0  # no jumps within a drive
+    # drives_val_unseen: 4 Kouvola drives clear of the drives and of the Kouvola split.
+    tested = np.concatenate([drives.poses[:, :2], pp.plan_test_city(kouvola, cfg).poses[:, :2]])
+    unseen = dr.plan_val_drives(kouvola, cfg, "kouvola", tested, name=dr.UNSEEN_VAL_DRIVES)
+    sp.check_disjoint({"tested": tested, "unseen": unseen.poses[:, :2]})
+    counts = [int((unseen.sequence_ids == s).sum()) for s in np.unique(unseen.sequence_ids)]
+    assert len(counts) == 4 and min(counts) >= 61 and max(counts) <= 201

@@ -414,6 +414,7 @@ def _tree(data_root, **eval_):
             "splits": ["test"],
             "sequential_splits": ["drives_val"],
             "calibration_split": "drives_val",
+            "temperature_drives": "drives_val",  # no test city here: no drives_val_unseen
             "batch_size": 2,
             "num_figures": 1,
             "max_batches": 1,

@@ -117,10 +117,10 @@ class EvalConfig:
     batch_size: int = 8
     mode: str = "both"
     sequential_splits: tuple[str, ...] = ("drives",)
-    calibration_split: str | None = "drives_val"
+    calibration_split: str | None = "drives_val_unseen"
     temperature: float | None = None
     temperature_split: str = "val"
-    temperature_drives: str | None = "drives_val"
+    temperature_drives: str | None = "drives_val_unseen"
     temperature_scales: tuple[float, ...] = (1.0, 4.0, 16.0, 64.0)
     odometry: OdometryConfig = OdometryConfig()
     tracker: TrackerSection = TrackerSection()

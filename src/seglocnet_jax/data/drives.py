@@ -9,6 +9,11 @@
   contiguous runs of clear frames, and the longest run of each route is kept if it spans at
   least ``min_val_drive_m`` (cut to its first ``drive_length_m``). They may overlap val / test
   frames (they only must stay clear of train).
+* ``drives_val_unseen``: ``num_unseen_val_drives`` drives in the test city, chosen the same way
+  but clear of every frame of ``drives`` and of the test city's single-frame split: validation
+  drives in a city the model was never trained on, for the sequential settings that a
+  training-city validation cannot decide (the first lock of a model that has not seen the city).
+  They share the city with the test drives, not a place: no frame's BEV overlaps a test frame's.
 
 Records of a drive split are ordered by drive, then frame; drive ``d`` is the sequence
 ``"{city}-{split}-d{d:03d}"`` with frames ``frame_index`` 0..n-1 (``sample_id``
@@ -30,8 +35,9 @@ from scipy.spatial import cKDTree
 
 from seglocnet_jax.data import splits as sp
 
-DRIVES, VAL_DRIVES = "drives", "drives_val"
-DRIVE_STREAMS = {DRIVES: 4, VAL_DRIVES: 5}  # seeded_priors streams (0-3: the other splits)
+DRIVES, VAL_DRIVES, UNSEEN_VAL_DRIVES = "drives", "drives_val", "drives_val_unseen"
+# seeded_priors streams (0-3: the other splits)
+DRIVE_STREAMS = {DRIVES: 4, VAL_DRIVES: 5, UNSEEN_VAL_DRIVES: 6}
 MAX_STARTS = 50  # starts tried per test-city drive before giving up
 VAL_ROUTE_FACTOR = 2.0  # candidate drives_val routes are this many drive lengths long
 VAL_ROUTES_PER_DRIVE = 100  # candidate routes tried per requested drives_val drive
@@ -105,17 +111,26 @@ def clear_runs(ok: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
 
 
-def plan_val_drives(source, cfg, city: str, train_xy: np.ndarray) -> sp.SplitPlan:
-    """``cfg.num_val_drives`` drives in the main city ``city`` clear of every train frame
-    (``train_xy`` ``(n, 2)`` world metres); see the module docstring."""
+def plan_val_drives(
+    source, cfg, city: str, train_xy: np.ndarray, *, name: str = VAL_DRIVES
+) -> sp.SplitPlan:
+    """Validation drives in ``city`` clear of every frame in ``train_xy`` (``(n, 2)`` world
+    metres): ``cfg.num_val_drives`` of them in the main city clear of train (``name`` =
+    ``drives_val``), or ``cfg.num_unseen_val_drives`` in the test city clear of its test frames
+    (``drives_val_unseen``); see the module docstring."""
+    count, key, tag = {
+        VAL_DRIVES: (cfg.num_val_drives, "num_val_drives", 0xD52),
+        UNSEEN_VAL_DRIVES: (cfg.num_unseen_val_drives, "num_unseen_val_drives", 0xD53),
+    }[name]
+    what = "train" if name == VAL_DRIVES else "test"
     spacing, cap = cfg.drive_spacing_m, drive_frames(cfg.drive_length_m, cfg.drive_spacing_m)
     need = drive_frames(cfg.min_val_drive_m, spacing)
     clearance = 2 * sp.BEV_RADIUS + cfg.split.margin
     tree = cKDTree(np.asarray(train_xy, np.float64).reshape(-1, 2))
     drives, longest = [], 0
-    tries = VAL_ROUTES_PER_DRIVE * cfg.num_val_drives
+    tries = VAL_ROUTES_PER_DRIVE * count
     for attempt in range(tries):
-        rng = np.random.default_rng([cfg.seed, 0, attempt, 0xD52])
+        rng = np.random.default_rng([cfg.seed, 0, attempt, tag])
         poses, stamps = _route(source, rng, VAL_ROUTE_FACTOR * cfg.drive_length_m, spacing, city)
         dist, _ = tree.query(poses[:, :2], k=1)
         runs = clear_runs(dist > clearance)
@@ -126,14 +141,18 @@ def plan_val_drives(source, cfg, city: str, train_xy: np.ndarray) -> sp.SplitPla
         if b - a >= need:
             b = min(b, a + cap)
             drives.append((poses[a:b], stamps[a:b]))
-            if len(drives) == cfg.num_val_drives:
-                return _plan(VAL_DRIVES, city, drives, cfg.seed)
+            if len(drives) == count:
+                return _plan(name, city, drives, cfg.seed)
     longest_m = max(longest - 1, 0) * spacing
     raise sp.SplitError(
-        f"{city}: found {len(drives)} of data.num_val_drives={cfg.num_val_drives} drives_val "
+        f"{city}: found {len(drives)} of data.{key}={count} {name} "
         f"drives of >= data.min_val_drive_m={cfg.min_val_drive_m:g} m whose frames all stay "
-        f"> {clearance:.1f} m from every train frame, in {tries} candidate routes (longest clear "
-        f"run {longest_m:g} m); lower data.min_val_drive_m or data.num_val_drives, or give the "
-        "val / test regions more room (data.num_val, data.num_test), or set "
-        "data.num_val_drives=0"
+        f"> {clearance:.1f} m from every {what} frame, in {tries} candidate routes (longest clear "
+        f"run {longest_m:g} m); lower data.min_val_drive_m or data.{key}"
+        + (
+            ", or give the val / test regions more room (data.num_val, data.num_test)"
+            if name == VAL_DRIVES
+            else ", data.num_drives or data.num_test_city"
+        )
+        + f", or set data.{key}=0"
     )

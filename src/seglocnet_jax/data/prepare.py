@@ -4,7 +4,8 @@
 Per city it builds a frame source (the simulator by default, :mod:`.sim_source`), drives a pool of
 poses, assigns spatially disjoint train / val / test frames in the main city (:mod:`.splits`)
 and a generalization-only split named after the test city, plus whole continuous drives
-(``drives`` in the test city, ``drives_val`` in the main city clear of train: :mod:`.drives`),
+(``drives`` in the test city, ``drives_val`` in the main city clear of train and, optionally,
+``drives_val_unseen`` in the test city clear of its test frames: :mod:`.drives`),
 draws seeded priors (these plans: :mod:`.planning`), renders the sensors in batches and writes
 shards atomically. Sensors are prepared once; map variants (:mod:`.variants`) only rasterize.
 
@@ -86,6 +87,9 @@ class PrepareConfig:
         none).
       num_val_drives: continuous drives in the main city clear of every train frame (split
         ``drives_val``; 0: none).
+      num_unseen_val_drives: continuous drives in the test city clear of every frame of
+        ``drives`` and of the test city's split (split ``drives_val_unseen``: validation in a
+        city the model never saw; 0 or no test city: none).
       drive_spacing_m: metres between consecutive frames of a drive.
       drive_length_m: length of a drive, metres (``drives``: exactly; ``drives_val``: at most).
       min_val_drive_m: shortest ``drives_val`` drive, metres.
@@ -111,6 +115,7 @@ class PrepareConfig:
     num_test_city: int = 300
     num_drives: int = 8
     num_val_drives: int = 4
+    num_unseen_val_drives: int = 4
     drive_spacing_m: float = 5.0
     drive_length_m: float = 1000.0
     min_val_drive_m: float = 300.0
@@ -135,10 +140,11 @@ class PrepareConfig:
                 "data.num_train/num_val/num_test/num_test_city, shard_size and render_batch "
                 f"must be >= 1, got {counts}, {self.shard_size}, {self.render_batch}"
             )
-        if min(self.num_drives, self.num_val_drives) < 0:
+        if min(self.num_drives, self.num_val_drives, self.num_unseen_val_drives) < 0:
             raise ValueError(
-                "data.num_drives and data.num_val_drives must be >= 0 (0: no such split), got "
-                f"{self.num_drives}, {self.num_val_drives}"
+                "data.num_drives, data.num_val_drives and data.num_unseen_val_drives must be "
+                f">= 0 (0: no such split), got {self.num_drives}, {self.num_val_drives}, "
+                f"{self.num_unseen_val_drives}"
             )
         if not self.drive_spacing_m > 0 or not self.drive_length_m >= self.drive_spacing_m:
             raise ValueError(
@@ -160,6 +166,8 @@ class PrepareConfig:
                 names.append(dr.DRIVES)
         if self.num_val_drives:
             names.append(dr.VAL_DRIVES)
+        if self.test_city and self.num_unseen_val_drives:
+            names.append(dr.UNSEEN_VAL_DRIVES)
         return names
 
     def identity(self) -> dict:
@@ -167,6 +175,8 @@ class PrepareConfig:
         d = dataclasses.asdict(self)
         for key in ("root", "map_variants"):
             d.pop(key)
+        if not d["num_unseen_val_drives"]:  # added later: off, datasets prepared before match
+            d.pop("num_unseen_val_drives")
         return json.loads(json.dumps(d))
 
 
@@ -357,6 +367,14 @@ def _prepare(cfg: PrepareConfig, dataset_dir: str, source_factory, variants) -> 
         if cfg.num_val_drives:
             train = plans[0].poses[:, :2]
             plans.append(dr.plan_val_drives(sources[main], cfg, main, train))
+        if cfg.test_city and cfg.num_unseen_val_drives:  # clear of every test-city test frame
+            other = city_key(cfg.test_city)
+            tested = np.concatenate([p.poses[:, :2] for p in plans if p.city == other])
+            plans.append(
+                dr.plan_val_drives(
+                    sources[other], cfg, other, tested, name=dr.UNSEEN_VAL_DRIVES
+                )
+            )
         planned = _planned_splits(plans, cfg.shard_size)
         if man is None:
             os.makedirs(dataset_dir, exist_ok=True)
