@@ -424,8 +424,10 @@ def _tree(data_root, **eval_):
 
 
 def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, capsys):
-    # With the acquisition window (off by default): the app's path through both windows.
-    cfg = build_experiment(_tree(data_root, bev_source="gt", tracker={"acquire_size": 257}))
+    # With the acquisition window (off by default; one window, not the default bank): the app's
+    # path through both windows.
+    tracker = {"acquire_size": 257, "hypotheses": 1}
+    cfg = build_experiment(_tree(data_root, bev_source="gt", tracker=tracker))
     assert cfg.eval.tracker.acquire_size == 257
     key = (cfg.model, cfg.solver, "gt", "volume")
     before = evaluation.TRACE_COUNTS.get(key, 0)
@@ -521,6 +523,7 @@ def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, cap
         ({"temperature_scales": [4.0, 1.0]}, "eval.temperature_scales"),
         ({"temperature_scales": [0.0, 1.0]}, "eval.temperature_scales"),
         ({"tracker": {"outlier": 1.0}}, "outlier"),
+        ({"tracker": {"acquire_size": 257}}, "hypotheses = 4 needs outlier = 0 and acquire_size"),
         ({"mode": "video"}, "eval.mode"),
         ({"temperature": -1.0}, "eval.temperature"),
         ({"max_drives": 0}, "eval.max_drives"),

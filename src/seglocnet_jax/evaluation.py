@@ -50,6 +50,9 @@ TRACE_COUNTS: dict[tuple, int] = {}
 _TRACKER_DERIVED = ("num_rotations", "size", "resolution", "bev_size")
 # TrackerConfig's motion-noise fields: null in eval.tracker means "from eval.odometry".
 TRACKER_MOTION_FIELDS = ("sigma_xy", "sigma_xy_per_m", "sigma_yaw", "sigma_yaw_per_rad")
+# Where the app's default differs from the filter's own (TrackerConfig: one window): a bank of
+# 4 windows, the setting chosen on the unseen city's validation drives (docs/sequential.md).
+TRACKER_APP_DEFAULTS = {"hypotheses": 4}
 
 
 def _tracker_section():
@@ -61,13 +64,15 @@ def _tracker_section():
         if f.name in TRACKER_MOTION_FIELDS:
             fields.append((f.name, float | None, dataclasses.field(default=None)))
         else:
-            fields.append((f.name, hints[f.name], dataclasses.field(default=f.default)))
+            default = TRACKER_APP_DEFAULTS.get(f.name, f.default)
+            fields.append((f.name, hints[f.name], dataclasses.field(default=default)))
     cls = dataclasses.make_dataclass("TrackerSection", fields, frozen=True)
     cls.__module__ = __name__
     cls.__doc__ = (
         "``eval.tracker``: the motion-noise and track-loss fields of "
-        ":class:`seglocnet_jax.tracking.TrackerConfig` (same names, meanings and defaults; one "
-        "source of defaults: built from its fields). The motion-noise fields "
+        ":class:`seglocnet_jax.tracking.TrackerConfig` (same names, meanings and defaults, "
+        "built from its fields, except ``TRACKER_APP_DEFAULTS``: ``hypotheses`` = 4, a bank of "
+        "windows, where the filter's own default is one window). The motion-noise fields "
         f"({', '.join(TRACKER_MOTION_FIELDS)}) default to null: derived from ``eval.odometry`` "
         "(the noise the filter's prediction must allow for); a number overrides. K, the window "
         "size and the resolution follow the solver."
