@@ -371,9 +371,7 @@ def _prepare(cfg: PrepareConfig, dataset_dir: str, source_factory, variants) -> 
             other = city_key(cfg.test_city)
             tested = np.concatenate([p.poses[:, :2] for p in plans if p.city == other])
             plans.append(
-                dr.plan_val_drives(
-                    sources[other], cfg, other, tested, name=dr.UNSEEN_VAL_DRIVES
-                )
+                dr.plan_val_drives(sources[other], cfg, other, tested, name=dr.UNSEEN_VAL_DRIVES)
             )
         planned = _planned_splits(plans, cfg.shard_size)
         if man is None:
