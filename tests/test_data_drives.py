@@ -174,6 +174,8 @@ def test_unseen_drives_enter_the_identity_only_when_on():
     assert "num_unseen_val_drives" not in off
     on = pp.PrepareConfig(num_unseen_val_drives=4).identity()
     assert on.pop("num_unseen_val_drives") == 4 and on == off
+    no_city = pp.PrepareConfig(test_city=None, num_unseen_val_drives=4).identity()
+    assert "num_unseen_val_drives" not in no_city  # no test city: no such split
 
 
 class RoadSource:

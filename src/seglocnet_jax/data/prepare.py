@@ -175,8 +175,8 @@ class PrepareConfig:
         d = dataclasses.asdict(self)
         for key in ("root", "map_variants"):
             d.pop(key)
-        if not d["num_unseen_val_drives"]:  # added later: off, datasets prepared before match
-            d.pop("num_unseen_val_drives")
+        if not (d["test_city"] and d["num_unseen_val_drives"]):  # added later: when it makes
+            d.pop("num_unseen_val_drives")  # no split, datasets prepared before it still match
         return json.loads(json.dumps(d))
 
 
