@@ -19,7 +19,9 @@ returns the score volume of the tile cut around the filter's estimate (``--batch
 step), and the filter predicts and updates. The network is the main job's preset (``tiny``,
 fused, seg) at the simulator's sizes (6 x 64 x 160 images, 32,768 LiDAR points), its weights
 random (the cost does not depend on them; the likelihood is then noise, so the filter may take
-its loss path more often than with a trained model: ``drive_losses`` counts it). Sensor frames
+its loss path more often than with a trained model: ``drive_losses`` counts it; and a bank of
+windows, the app's default, keeps more windows alive than on real drives:
+``drive_windows_per_frame`` reports it, ``--hypotheses 1`` measures one window). Sensor frames
 cycle through 8 synthetic ones. Reported: frames per second of the whole loop, and its
 localize / filter / data milliseconds per frame (the loop's own timing, which leaves out its
 first 2 steps: compilation).
@@ -33,11 +35,13 @@ JSON.
 
     python experiments/bench_tracking.py [--num-rotations 256] [--frames 20] [--map-cell given]
         [--window tracking|acquisition] [--drives 4] [--drive-frames 24] [--batch 4]
+        [--hypotheses H]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -186,8 +190,11 @@ def _synthetic_drives(num: int, frames: int, raster, rng) -> list:
     return drives
 
 
-def bench_drives(num_drives: int, frames: int, batch_size: int, seed: int = 0) -> dict:
-    """Whole drives through the lockstep loop with the tiny network (see the module docstring)."""
+def bench_drives(
+    num_drives: int, frames: int, batch_size: int, seed: int = 0, hypotheses: int | None = None
+) -> dict:
+    """Whole drives through the lockstep loop with the tiny network (see the module docstring);
+    ``hypotheses``: windows per drive (None: the app's default, ``eval.tracker.hypotheses``)."""
     rng = np.random.default_rng(seed)
     side = 1600  # pixels: an 800 m city
     mask = (rng.random((2, side // 8, side // 8)) > 0.6).repeat(8, 1).repeat(8, 2)
@@ -206,7 +213,12 @@ def bench_drives(num_drives: int, frames: int, batch_size: int, seed: int = 0) -
         return {k: jnp.asarray(v) for k, v in batch.items() if k not in HOST_ONLY_KEYS}
 
     drives = _synthetic_drives(num_drives, frames, raster, rng)
-    cfg = sequential.tracker_config(evaluation.EvalConfig(), geometry.NUM_ROTATIONS)
+    eval_cfg = evaluation.EvalConfig()
+    if hypotheses is not None:
+        eval_cfg = dataclasses.replace(
+            eval_cfg, tracker=dataclasses.replace(eval_cfg.tracker, hypotheses=hypotheses)
+        )
+    cfg = sequential.tracker_config(eval_cfg, geometry.NUM_ROTATIONS)
     t0 = time.perf_counter()
     tracks, timing = sequential.track_split(
         step,
@@ -216,7 +228,7 @@ def bench_drives(num_drives: int, frames: int, batch_size: int, seed: int = 0) -
         cfg=cfg,
         odometry_cfg=tracking.OdometryConfig(),
         odometry_seed=seed,
-        temperature=1383.0,  # the main job's filter temperature (docs/sequential.md)
+        temperature=346.0,  # the main job's filter temperature (docs/sequential.md)
         batch_size=batch_size,
         place=place,
         desc="drives",
@@ -234,6 +246,8 @@ def bench_drives(num_drives: int, frames: int, batch_size: int, seed: int = 0) -
         **{f"drive_{k}_ms_per_frame": round(v, 1) for k, v in per_frame.items()},
         "drive_wall_s_with_compile": round(wall, 1),
         "drive_losses": int(sum(t.lost.sum() for t in tracks)),
+        "drive_hypotheses": cfg.hypotheses,
+        "drive_windows_per_frame": round(float(np.mean([t.hypotheses.mean() for t in tracks])), 2),
     }
 
 
@@ -258,6 +272,9 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--drive-frames", type=int, default=24, help="frames per drive")
     parser.add_argument("--batch", type=int, default=4, help="drives per localize step")
+    parser.add_argument(
+        "--hypotheses", type=int, default=None, help="windows per drive (default: the app's)"
+    )
     args = parser.parse_args(argv)
     if args.drives and args.drive_frames * args.drives <= 2 * args.batch:
         parser.error("--drives x --drive-frames must exceed the 2 compiling steps' frames")
@@ -265,7 +282,9 @@ def main(argv=None) -> None:
     load_before = os.getloadavg()[0]
     result = bench(args.num_rotations, args.frames, map_cell=args.map_cell, window=args.window)
     if args.drives:
-        result.update(bench_drives(args.drives, args.drive_frames, args.batch))
+        result.update(
+            bench_drives(args.drives, args.drive_frames, args.batch, hypotheses=args.hypotheses)
+        )
     result.update(
         device=str(jax.devices()[0].platform),
         cpu_count=os.cpu_count(),
