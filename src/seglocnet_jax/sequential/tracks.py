@@ -335,12 +335,15 @@ def track_split(
         t3 = time.perf_counter()
         for r, (j, i) in enumerate(owners):
             slot = slots[active[j]]
+            # The evidence only weighs windows against each other: one window needs none (frame
+            # 0's split sets the weights afterwards).
+            weigh = len(slot.beliefs) > 1
             slot.beliefs[i], info = tracking.update(
-                slot.beliefs[i], log_lik[r], slot.cfg, evidence=cfg.hypotheses > 1
+                slot.beliefs[i], log_lik[r], slot.cfg, evidence=weigh
             )
             slot.map_cells[i] = info["estimate"]["map_cell"]
             slot.infos[i] = info
-            if cfg.hypotheses > 1:
+            if weigh:
                 slot.log_w[i] = slot.log_w[i] + info["log_evidence"]
         for j, s in enumerate(active):
             slot = slots[s]
@@ -398,8 +401,8 @@ def _weigh_windows(slot: _Slot, cfg: tracking.TrackerConfig, *, first: bool) -> 
     """After a frame's update: with ``cfg.hypotheses`` > 1, frame 0's posterior is split among
     its modes (:func:`tracking.hypotheses.split_modes`); then the windows are pruned and merged
     (:func:`tracking.hypotheses.prune_and_merge`), the heaviest first."""
-    if cfg.hypotheses <= 1:
-        return
+    if cfg.hypotheses <= 1 or (not first and len(slot.beliefs) == 1):
+        return  # one window left: nothing to weigh, prune or merge (its weight is 1)
     if first:
         pieces = hypotheses.split_modes(slot.belief, slot.cfg)
         slot.beliefs = [b for b, _ in pieces]
