@@ -247,6 +247,128 @@ def test_a_loss_in_either_window_restarts_the_acquisition_window_on_the_box():
         assert p_xy[:64].sum() == 0 and p_xy[:, 193:].sum() == 0
 
 
+def _peak_step(peak_of, sizes=None):
+    """A localize step whose score volume is one peak per row at ``peak_of(batch, i)`` (a tile
+    pose; None: flat), its size the tile's (``sizes``: the window sizes it was asked for)."""
+
+    def step(params, batch, figures=False, volume=False):
+        b = len(batch["pose"])
+        out = {"pose_tile": jnp.zeros((b, 3))}
+        if volume:
+            n = batch["tile"].shape[-1] - geometry.BEV_SIZE + 1
+            if sizes is not None:
+                sizes.append(n)
+            vol = np.zeros((b, K, n, n), np.float32)
+            for i in range(b):
+                p = peak_of(batch, i)
+                cell = np.round(geometry.pose_to_cell(p, K, size=n)).astype(int)
+                if (0 <= cell[1:]).all() and (cell[1:] < n).all():
+                    vol[i, cell[0] % K, cell[1], cell[2]] = 20.0
+            out["volume"] = jnp.asarray(vol)
+        return out
+
+    return step
+
+
+_EXACT_ODOMETRY = tr.OdometryConfig(
+    scale_sigma=0.0, yaw_bias_sigma=0.0, yaw_scale_sigma=0.0, yaw_sigma=0.0
+)
+
+
+@pytest.mark.parametrize("hypotheses", [1, 3])
+def test_a_locked_drive_narrows_to_the_tracking_window(hypotheses):
+    """Every frame peaks at the truth: the drive tracks it in the 129-cell window (the bank's
+    windows first), narrows to the 65-cell tracking window once its box has held
+    acquire_mass for acquire_frames frames with one window left, and tracks on in it (its
+    tile 192 px)."""
+    drive = _straight_drive(n=14)
+    ev = evaluation.EvalConfig(
+        odometry=_EXACT_ODOMETRY,
+        tracker=evaluation.TrackerSection(track_size=65, hypotheses=hypotheses),
+    )
+    cfg = sequential.tracker_config(ev, K)
+    sizes = []
+    step = _peak_step(lambda batch, i: np.asarray(batch["pose_tile"][i], np.float64), sizes)
+    track = _track_one(step, _FakeSplit(_raster(3), drive), drive, cfg, _EXACT_ODOMETRY)
+    err = np.hypot(*(track.filtered[:, :2] - drive.poses[:, :2]).T)
+    assert err.max() < 1.0, err
+    assert not track.acquiring.any() and not track.lost[2:].any()
+    first = int(np.argmax(track.narrowed))  # the first frame in the tracking window
+    assert track.narrowed[first:].all() and first >= cfg.acquire_frames
+    assert (track.hypotheses[first - cfg.acquire_frames : first] == 1).all()
+    assert sizes[-1] == 65 and sizes[0] == 129 and sizes.count(65) == len(drive) - first
+
+
+def test_a_loss_in_the_tracking_window_widens_it_and_recovers():
+    """From frame 12 on every frame peaks 12 m to the side of the truth (inside the 65-cell
+    window, 24 cells off the filter's mode): the narrow filter detects the loss, widens to the
+    129-cell window around its last estimate, locks on the new peak and narrows again."""
+    drive = _straight_drive(n=30)
+    side = 12.0 * np.array([-math.sin(drive.poses[0, 2]), math.cos(drive.poses[0, 2])])
+
+    def peak(batch, i):
+        p = np.asarray(batch["pose_tile"][i], np.float64)
+        if int(batch["frame_index"][i]) >= 12:
+            p[:2] += side
+        return p
+
+    # floor 0: no prior mass where the peak jumps to, so the belief cannot simply follow it.
+    section = evaluation.TrackerSection(track_size=65, hypotheses=1, floor=0.0)
+    ev = evaluation.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
+    cfg = sequential.tracker_config(ev, K)
+    track = _track_one(_peak_step(peak), _FakeSplit(_raster(4), drive), drive, cfg, _EXACT_ODOMETRY)
+    assert track.narrowed[8:12].all()  # locked and narrow before the jump
+    lost = np.flatnonzero(track.lost)
+    assert lost.size and 12 <= lost[0] <= 14, lost
+    assert not track.narrowed[lost[0] + 1]  # widened at once
+    assert track.narrowed[-1]  # and narrow again
+    moved = drive.poses[:, :2] + side
+    assert np.hypot(*(track.filtered[-5:, :2] - moved[-5:]).T).max() < 1.0
+
+
+def test_a_loss_in_the_tracking_window_restarts_the_wider_window():
+    raster = _raster()
+    for acquire in (0, 257):
+        cfg = tr.TrackerConfig(num_rotations=K, track_size=65, acquire_size=acquire)
+        narrow_cfg, wide = cfg.tracking_window(), cfg.acquisition()
+        assert (narrow_cfg.size, narrow_cfg.tile_size, narrow_cfg.track_size) == (65, 192, 0)
+        belief = sequential.start_belief(raster, (-20.3, 130.7), cfg)
+        belief, _ = tr.narrow(belief, wide or cfg, narrow_cfg)
+        slot = tracks._Slot(
+            _straight_drive(3), belief._replace(losses=jnp.int32(1)), None, narrow_cfg, False
+        )
+        slot.held = 2
+        centre = tr.window_centre(slot.belief, narrow_cfg)
+        tracks._next_window(slot, True, cfg, wide, raster)
+        want = wide or cfg
+        assert slot.cfg == want and slot.wide == bool(acquire) and slot.held == 0
+        assert int(slot.belief.losses) == 1 and slot.belief.prob.shape[1] == want.size
+        np.testing.assert_allclose(tr.window_centre(slot.belief, want), centre)
+        # the next predict keeps the window on the last estimate (the mode of a uniform belief
+        # would be a corner)
+        np.testing.assert_array_equal(slot.map_cells[0][1:], [want.centre, want.centre])
+
+
+def test_the_tracking_windows_volume_is_the_centre_of_the_full_windows():
+    """The localize step on the 192 px tile of the tracking window scores its 65 x 65 cells as
+    on the 256 px tile they are the centre of (GT BEV: the tile is only correlated)."""
+    rng = np.random.default_rng(5)
+    tile = (rng.random((1, 2, 256, 256)) > 0.5).astype(np.float32)
+    bev = tile[:, :, 70:198, 50:178].copy()
+    step = evaluation.make_localize_step(
+        ModelConfig(num_classes=2), solver.SolverConfig(num_rotations=K), "gt"
+    )
+    full = step(None, {"tile": jnp.asarray(tile), "bev_gt": jnp.asarray(bev)}, volume=True)
+    small = step(
+        None,
+        {"tile": jnp.asarray(tile[:, :, 32:224, 32:224]), "bev_gt": jnp.asarray(bev)},
+        volume=True,
+    )
+    full, small = np.asarray(full["volume"]), np.asarray(small["volume"])
+    assert small.shape == (1, K, 65, 65)
+    np.testing.assert_allclose(small, full[:, :, 32:97, 32:97], atol=1e-3 * np.abs(full).max())
+
+
 # --------------------------------------------------------------------------- read-outs
 
 
@@ -351,6 +473,7 @@ def test_summary_follows_the_documented_definitions():
         log_p_gt=np.where(err < 1.0, -2.0, -5.0),
         lost=lost,
         acquiring=np.arange(n) < 6,
+        narrowed=np.arange(n) >= 21,
         hypotheses=np.where(np.arange(n) < 4, 3, 1),
         scale=np.full(n, 1.01),
     )
@@ -366,6 +489,7 @@ def test_summary_follows_the_documented_definitions():
     assert s["coverage"]["0.5"] == s["coverage_90"] == pytest.approx(100 * 15 / 30)
     assert s["filtered"]["count"] == s["single"]["count"] == n
     assert d["frames_acquiring"] == 6 and s["acquiring_pct"] == pytest.approx(20.0)
+    assert d["frames_narrowed"] == 9 and s["narrowed_pct"] == pytest.approx(30.0)
     assert d["frames_multi_hypothesis"] == 4 and d["odometry_scale"] == 1.01
     assert s["hypotheses_mean"] == pytest.approx((4 * 3 + 26) / 30)
     assert s["single"]["APE"] == 0.0 and s["filtered"]["APE"] == pytest.approx(err.mean())

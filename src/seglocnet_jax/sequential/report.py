@@ -62,6 +62,7 @@ def drive_summary(track: Track) -> dict:
         "lost_episodes_detected": int(flagged),
         "longest_lost_run": int(max((b - a for a, b in episodes), default=0)),
         "frames_acquiring": int(np.sum(track.acquiring)),
+        "frames_narrowed": int(np.sum(track.narrowed)),
         "frames_multi_hypothesis": int(np.sum(track.hypotheses > 1)),
         "odometry_scale": float(track.scale[-1]),  # the filter's estimate at the last frame
     }
@@ -102,6 +103,7 @@ def summarize(tracks: list[Track], masses=MASSES) -> dict:
     }
     out["coverage_90"] = _pct(above < 0.9)
     out["acquiring_pct"] = _pct(np.concatenate([t.acquiring for t in tracks]))
+    out["narrowed_pct"] = _pct(np.concatenate([t.narrowed for t in tracks]))
     # Windows tracked per frame (tracking.hypotheses; 1 without a bank).
     out["hypotheses_mean"] = float(np.concatenate([t.hypotheses for t in tracks]).mean())
     # The filter's log score: mean log posterior of the GT cell (nats; clamped, see tracks).
@@ -201,8 +203,8 @@ def write_figures(
 def write_arrays(tracks: list[Track], path: str) -> str:
     """Per-frame arrays of a split (``.npz``): ids, GT, single-frame and filtered poses, the
     posterior mean and covariance, the mass above the GT cell, its log posterior, the
-    detected losses, the frames tracked in the acquisition window and the windows tracked
-    after each frame."""
+    detected losses, the frames tracked in the acquisition window and in the tracking window
+    and the windows tracked after each frame."""
     cat = {
         "sequence_id": np.concatenate([[t.drive.sequence_id] * len(t.drive) for t in tracks]),
         "frame_index": np.concatenate([t.drive.frame_index for t in tracks]),
@@ -218,6 +220,7 @@ def write_arrays(tracks: list[Track], path: str) -> str:
         "log_p_gt",
         "lost",
         "acquiring",
+        "narrowed",
         "hypotheses",
         "scale",
     ):

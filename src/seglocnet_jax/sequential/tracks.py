@@ -192,6 +192,7 @@ class Track:
     log_p_gt: np.ndarray  # (T,) log posterior of the GT cell (clamped: LOG_P_FLOOR)
     lost: np.ndarray  # (T,) bool, the filter detected a track loss at this frame
     acquiring: np.ndarray  # (T,) bool, this frame was tracked in the acquisition window
+    narrowed: np.ndarray  # (T,) bool, this frame was tracked in the tracking window
     hypotheses: np.ndarray  # (T,) int, windows tracked after this frame (tracking.hypotheses)
     scale: np.ndarray  # (T,) the odometry distance scale estimated after this frame
 
@@ -210,9 +211,9 @@ class _Slot:
         self.beliefs, self.log_w = [belief], [0.0]
         self.map_cells = [None]  # (3,) of each window's last posterior
         self.infos = [None]  # each window's last update info
-        self.cfg, self.wide = cfg, wide
+        self.cfg, self.wide = cfg, wide  # wide: in the acquisition window
         self.scale = odometry_lib.ScaleEstimate(cfg.scale_prior_m)
-        self.held = 0  # consecutive frames the acquisition window's box held acquire_mass
+        self.held = 0  # consecutive frames the next smaller window's box held acquire_mass
         self.out = collections.defaultdict(list)
 
     @property
@@ -271,17 +272,22 @@ def track_split(
                 slots[s] = _Slot(d, belief, np.asarray(odo), wide_cfg if wide else cfg, wide)
 
     def volumes(filter_rows, active):
-        """The log-likelihood volume of each row (``active``: its slot): the narrow ones in
-        padded batches of ``batch_size``, each acquiring one on its own."""
+        """The log-likelihood volume of each row (``active``: its slot): the rows of each
+        window size (``cfg``'s, the tracking window's) in padded batches of ``batch_size``,
+        each acquiring one on its own."""
         out = {}
-        narrow = [j for j, s in enumerate(active) if not slots[s].wide]
-        for start in range(0, len(narrow), batch_size):
-            chunk = narrow[start : start + batch_size]
-            rows = [filter_rows[j] for j in chunk]
-            rows += [rows[0]] * (batch_size - len(rows))  # static shapes
-            vol = step(params, place(_stack(rows)), volume=True)["volume"]
-            lik = _log_likelihood(vol, temperature)  # (B, K, N, N)
-            out.update({j: lik[i] for i, j in enumerate(chunk)})
+        by_size = collections.defaultdict(list)  # window size -> rows (a program per tile size)
+        for j, s in enumerate(active):
+            if not slots[s].wide:
+                by_size[slots[s].cfg.size].append(j)
+        for group in by_size.values():
+            for start in range(0, len(group), batch_size):
+                chunk = group[start : start + batch_size]
+                rows = [filter_rows[j] for j in chunk]
+                rows += [rows[0]] * (batch_size - len(rows))  # static shapes
+                vol = step(params, place(_stack(rows)), volume=True)["volume"]
+                lik = _log_likelihood(vol, temperature)  # (B, K, N, N)
+                out.update({j: lik[i] for i, j in enumerate(chunk)})
         for j, s in enumerate(active):
             if slots[s].wide:
                 vol = step(params, place(_stack([filter_rows[j]])), volume=True)["volume"]
@@ -376,6 +382,7 @@ def track_split(
             slot.out["log_p_gt"].append(float(log_p))
             slot.out["lost"].append(lost)
             slot.out["acquiring"].append(slot.wide)
+            slot.out["narrowed"].append(slot.cfg.size < cfg.size)
             slot.out["hypotheses"].append(len(slot.beliefs))
             _next_window(slot, lost, cfg, wide_cfg, split.rasters[slot.drive.city])
             slot.t += 1
@@ -425,21 +432,39 @@ def _weigh_windows(slot: _Slot, cfg: tracking.TrackerConfig, *, first: bool) -> 
 
 
 def _next_window(slot: _Slot, lost: bool, cfg, wide_cfg, raster) -> None:
-    """The window the slot's next frame is tracked in: a detected loss (in either window)
-    starts the acquisition window again, uniform over the box around the window centre (the
-    last estimate; the loss count kept); the acquisition window narrows once the box around
-    the mode has held ``cfg.acquire_mass`` for ``cfg.acquire_frames`` frames in a row."""
-    if wide_cfg is None:
+    """The window the slot's next frame is tracked in. A detected loss (in any window) in a
+    window other than ``cfg``'s without an acquisition window starts the widest window again
+    (the acquisition window, else ``cfg``'s), uniform over the box around the window centre
+    (the last estimate; the loss count kept); in ``cfg``'s window without an acquisition
+    window the update has already reset the belief in place. A window narrows to the next
+    smaller one (acquisition -> ``cfg`` -> tracking window, the last only with one window
+    left) once the smaller box around the mode has held ``cfg.acquire_mass`` for
+    ``cfg.acquire_frames`` frames in a row (:func:`tracking.narrow`)."""
+    track_cfg = cfg.tracking_window()
+    if lost and (wide_cfg is not None or slot.cfg is not cfg):
+        losses = slot.belief.losses
+        centre = tracking.window_centre(slot.belief, slot.cfg)
+        belief = start_belief(raster, centre, cfg)
+        slot.wide = wide_cfg is not None
+        slot.cfg, slot.held = wide_cfg if slot.wide else cfg, 0
+        # The next predict moves the window with the last estimate's heading, centre kept (the
+        # uniform belief's own first maximum is a corner of the box: the window would jump).
+        k = 0 if slot.map_cells[0] is None else slot.map_cells[0][0]
+        cell = jnp.stack([jnp.asarray(k, jnp.int32), *[jnp.int32(slot.cfg.centre)] * 2])
+        slot.beliefs, slot.map_cells, slot.infos = [belief._replace(losses=losses)], [cell], [None]
         return
     if lost:
-        losses = slot.belief.losses
-        belief = start_belief(raster, tracking.window_centre(slot.belief, slot.cfg), cfg)
-        slot.beliefs, slot.map_cells, slot.infos = [belief._replace(losses=losses)], [None], [None]
-        slot.cfg, slot.wide, slot.held = wide_cfg, True, 0
-    elif slot.wide:
-        belief, kept = tracking.narrow(slot.belief, wide_cfg, cfg, map_cell=slot.map_cells[0])
-        slot.held = slot.held + 1 if float(kept) >= cfg.acquire_mass else 0
-        if slot.held >= cfg.acquire_frames:
-            # the next predict finds the mode in the new window
-            slot.beliefs, slot.map_cells, slot.infos = [belief], [None], [None]
-            slot.cfg, slot.wide, slot.held = cfg, False, 0
+        slot.held = 0
+        return
+    if slot.wide:
+        smaller = cfg
+    elif slot.cfg is cfg and track_cfg is not None and len(slot.beliefs) == 1:
+        smaller = track_cfg
+    else:
+        return
+    belief, kept = tracking.narrow(slot.belief, slot.cfg, smaller, map_cell=slot.map_cells[0])
+    slot.held = slot.held + 1 if float(kept) >= cfg.acquire_mass else 0
+    if slot.held >= cfg.acquire_frames:
+        # the next predict finds the mode in the new window
+        slot.beliefs, slot.map_cells, slot.infos = [belief], [None], [None]
+        slot.cfg, slot.wide, slot.held = smaller, False, 0

@@ -48,10 +48,19 @@ class TrackerConfig:
         at the far side of the box drags the window away without losing the truth's cells.
         Its tile is ``acquire_size - 1 + bev_size`` pixels (384 for 257). Off by default: on
         the validation drives it measured worse (docs/sequential.md).
-      acquire_mass, acquire_frames: the filter leaves the acquisition window (:func:`narrow`)
-        once the ``size`` box around the mode has held at least ``acquire_mass`` of the belief
-        for ``acquire_frames`` consecutive frames (one confident frame may be confidently
-        wrong: a look-alike street at the far side of the box).
+      acquire_mass, acquire_frames: the filter leaves a window for the next smaller one
+        (:func:`narrow`: the acquisition window for the ``size`` one, that for the tracking
+        window) once the smaller box around the mode has held at least ``acquire_mass`` of the
+        belief for ``acquire_frames`` consecutive frames (one confident frame may be
+        confidently wrong: a look-alike street at the far side of the box).
+      track_size: cells per axis of the *tracking window* (odd, < ``size``; 0: none): once a
+        drive is down to one window whose ``track_size`` box around the mode has held
+        ``acquire_mass`` for ``acquire_frames`` frames, the filter narrows to that box (its
+        tile is ``track_size - 1 + bev_size`` pixels: 192 for 65, whose score volume is the
+        centre of the ``size`` window's, cell for cell); a detected loss widens it back to the
+        ``size`` window (the acquisition window with one), uniform around the last estimate.
+        Locked, the belief spans a few metres: the ``size`` window's far cells cost every
+        pass over the volume and hold nothing.
       hypotheses: most windows tracked at once per drive (1: one window). With more, the
         first frame's posterior (over the prior box) is split among windows that cover it
         greedily, each centred on the strongest cell not yet covered (the first one is the
@@ -90,6 +99,7 @@ class TrackerConfig:
     hypotheses: int = 1
     hypothesis_prune: float = 10.0
     scale_prior_m: float = 200.0
+    track_size: int = 0
 
     def __post_init__(self):
         if self.num_rotations < 1:
@@ -114,6 +124,13 @@ class TrackerConfig:
                 f"acquire_size must be 0 (no acquisition window) or odd and > size "
                 f"({self.size}), got {self.acquire_size}"
             )
+        if self.track_size and (
+            self.track_size < 3 or self.track_size >= self.size or self.track_size % 2 == 0
+        ):
+            raise ValueError(
+                f"track_size must be 0 (no tracking window) or odd, >= 3 and < size "
+                f"({self.size}), got {self.track_size}"
+            )
         if not 0.0 < self.acquire_mass <= 1.0:
             raise ValueError(f"acquire_mass must be in (0, 1], got {self.acquire_mass}")
         if self.acquire_frames < 1:
@@ -135,7 +152,13 @@ class TrackerConfig:
         """The config of the acquisition window (``size = acquire_size``; None without one)."""
         if not self.acquire_size:
             return None
-        return dataclasses.replace(self, size=self.acquire_size, acquire_size=0)
+        return dataclasses.replace(self, size=self.acquire_size, acquire_size=0, track_size=0)
+
+    def tracking_window(self) -> TrackerConfig | None:
+        """The config of the tracking window (``size = track_size``; None without one)."""
+        if not self.track_size:
+            return None
+        return dataclasses.replace(self, size=self.track_size, acquire_size=0, track_size=0)
 
     @property
     def centre(self) -> int:
