@@ -2,9 +2,13 @@
 whole drives with the tiny network.
 
 A frame is predict (motion, blur, window re-centring) + update (one score volume's
-log-likelihood, a full ``(K, 129, 129)`` volume every frame; it returns the posterior's
-estimate too) on a ``(K, 129, 129)`` belief (K = 256 by default) tracking a synthetic drive (a
-peaked likelihood at the true cell plus distractors and noise; making it is not timed).
+log-likelihood over the window's cells; it returns the posterior's estimate too) on a
+``(K, N, N)`` belief (K = 256 by default) tracking a synthetic drive (a peaked likelihood at
+the true cell plus distractors and noise; making it is not timed). ``--window tracking`` (the
+default): the tracking window a locked drive runs in (``TrackerConfig(track_size=N)
+.tracking_window()``, N = ``--track-size``, default the app's ``eval.tracker.track_size``,
+else 65); ``--window full``: the full 129 x 129 window (a drive's first frames, its bank of
+windows, the frames after a loss).
 Predict gets the MAP cell of the estimate the previous update returned, as a filter loop
 has it (``--map-cell computed``: predict finds it itself, one more pass over the volume).
 ``--window acquisition``: the same frame on the acquisition window
@@ -34,8 +38,8 @@ figure depends on what else runs on the CPU. Progress goes to stderr; the last s
 JSON.
 
     python experiments/bench_tracking.py [--num-rotations 256] [--frames 20] [--map-cell given]
-        [--window tracking|acquisition] [--drives 4] [--drive-frames 24] [--batch 4]
-        [--hypotheses H]
+        [--window tracking|full|acquisition] [--track-size 65] [--drives 4] [--drive-frames 24]
+        [--batch 4] [--hypotheses H]
 """
 
 from __future__ import annotations
@@ -78,17 +82,33 @@ def _block(tree):
     return jax.block_until_ready(tree)
 
 
+WINDOWS = ("tracking", "full", "acquisition")
+
+
 def bench(
-    num_rotations: int, frames: int, seed: int = 0, map_cell: str = "given", window="tracking"
+    num_rotations: int,
+    frames: int,
+    seed: int = 0,
+    map_cell: str = "given",
+    window="tracking",
+    track_size: int = 65,
 ) -> dict:
     wide = 2 * tracking.TrackerConfig().size - 1 if window == "acquisition" else 0  # 257
+    narrow = track_size if window == "tracking" else 0
     base = tracking.TrackerConfig(num_rotations=num_rotations, acquire_size=wide)
-    cfg = base.acquisition() if window == "acquisition" else base
+    if window == "acquisition":
+        cfg = base.acquisition()
+    elif window == "tracking":
+        cfg = dataclasses.replace(base, track_size=narrow).tracking_window()
+    else:
+        cfg = base
     rng = np.random.default_rng(seed)
     step = np.array([2.0, 0.1, 0.02])  # m forward, m left, rad per frame
     pose = np.array([500.0, 500.0, 0.3])
     belief = tracking.init_belief(cfg, pose[:2] + 5.0)
-    stages = ("predict", "update", "estimate", "frame") + (("narrow",) if cfg is not base else ())
+    stages = ("predict", "update", "estimate", "frame") + (
+        ("narrow",) if window == "acquisition" else ()
+    )
     wall = {key: [] for key in stages}
     cpu = {key: [] for key in stages}
     cell = None
@@ -105,7 +125,7 @@ def bench(
         t3 = clock()
         _block(tracking.estimate(belief, cfg))
         t4 = clock()
-        if cfg is not base:  # as the tracker runs it: with the mode update returned
+        if window == "acquisition":  # as the tracker runs it: with the mode update returned
             _block(tracking.narrow(belief, cfg, base, map_cell=info["estimate"]["map_cell"]))
         t5 = clock()
         est = info["estimate"]
@@ -115,7 +135,7 @@ def bench(
                 ("predict", (t0, t1)),
                 ("update", (t2, t3)),
                 ("estimate", (t3, t4)),
-            ) + ((("narrow", (t4, t5)),) if cfg is not base else ()):
+            ) + ((("narrow", (t4, t5)),) if window == "acquisition" else ()):
                 wall[key].append(1000 * (b[0] - a[0]))
                 cpu[key].append(1000 * (b[1] - a[1]))
             wall["frame"].append(wall["predict"][-1] + wall["update"][-1])
@@ -248,6 +268,8 @@ def bench_drives(
         "drive_losses": int(sum(t.lost.sum() for t in tracks)),
         "drive_hypotheses": cfg.hypotheses,
         "drive_windows_per_frame": round(float(np.mean([t.hypotheses.mean() for t in tracks])), 2),
+        "drive_track_size": cfg.track_size,
+        "drive_narrowed_pct": round(float(100 * np.mean([t.narrowed.mean() for t in tracks])), 1),
     }
 
 
@@ -263,9 +285,16 @@ def main(argv=None) -> None:
     )
     parser.add_argument(
         "--window",
-        choices=("tracking", "acquisition"),
+        choices=WINDOWS,
         default="tracking",
-        help="the 129-cell tracking window or the 257-cell acquisition window",
+        help="the tracking window (--track-size cells: a locked drive's), the full 129-cell "
+        "window or the 257-cell acquisition window",
+    )
+    parser.add_argument(
+        "--track-size",
+        type=int,
+        default=None,
+        help="cells of the tracking window (default: the app's eval.tracker.track_size, else 65)",
     )
     parser.add_argument(
         "--drives", type=int, default=4, help="synthetic drives for the whole-drive rate (0: skip)"
@@ -280,7 +309,14 @@ def main(argv=None) -> None:
         parser.error("--drives x --drive-frames must exceed the 2 compiling steps' frames")
     print(f"devices: {jax.devices()}", file=sys.stderr)
     load_before = os.getloadavg()[0]
-    result = bench(args.num_rotations, args.frames, map_cell=args.map_cell, window=args.window)
+    track_size = args.track_size or evaluation.EvalConfig().tracker.track_size or 65
+    result = bench(
+        args.num_rotations,
+        args.frames,
+        map_cell=args.map_cell,
+        window=args.window,
+        track_size=track_size,
+    )
     if args.drives:
         result.update(
             bench_drives(args.drives, args.drive_frames, args.batch, hypotheses=args.hypotheses)

@@ -179,6 +179,15 @@ def _log_likelihood(volume, temperature):
     return volume / temperature
 
 
+@functools.partial(jax.jit, static_argnames="size")
+def _centre(volume, size: int):
+    """The central ``size x size`` cells of a ``(K, N, N)`` volume: the tracking window's
+    cells of the volume of the tile around its centre (for every variant: the network sees the
+    tile it was trained on)."""
+    o = (volume.shape[-1] - size) // 2
+    return volume[:, o : o + size, o : o + size]
+
+
 @dataclasses.dataclass
 class Track:
     """Per-frame outputs of one tracked drive (``T`` frames)."""
@@ -272,22 +281,20 @@ def track_split(
                 slots[s] = _Slot(d, belief, np.asarray(odo), wide_cfg if wide else cfg, wide)
 
     def volumes(filter_rows, active):
-        """The log-likelihood volume of each row (``active``: its slot): the rows of each
-        window size (``cfg``'s, the tracking window's) in padded batches of ``batch_size``,
-        each acquiring one on its own."""
+        """The log-likelihood volume of each row (``active``: its slot): the ``cfg`` tiles in
+        padded batches of ``batch_size`` (a tracking window's volume is the centre of its
+        tile's), each acquiring one on its own."""
         out = {}
-        by_size = collections.defaultdict(list)  # window size -> rows (a program per tile size)
-        for j, s in enumerate(active):
-            if not slots[s].wide:
-                by_size[slots[s].cfg.size].append(j)
-        for group in by_size.values():
-            for start in range(0, len(group), batch_size):
-                chunk = group[start : start + batch_size]
-                rows = [filter_rows[j] for j in chunk]
-                rows += [rows[0]] * (batch_size - len(rows))  # static shapes
-                vol = step(params, place(_stack(rows)), volume=True)["volume"]
-                lik = _log_likelihood(vol, temperature)  # (B, K, N, N)
-                out.update({j: lik[i] for i, j in enumerate(chunk)})
+        narrow = [j for j, s in enumerate(active) if not slots[s].wide]
+        for start in range(0, len(narrow), batch_size):
+            chunk = narrow[start : start + batch_size]
+            rows = [filter_rows[j] for j in chunk]
+            rows += [rows[0]] * (batch_size - len(rows))  # static shapes
+            vol = step(params, place(_stack(rows)), volume=True)["volume"]
+            lik = _log_likelihood(vol, temperature)  # (B, K, N, N)
+            for i, j in enumerate(chunk):
+                size = slots[active[j]].cfg.size
+                out[j] = lik[i] if size == cfg.size else _centre(lik[i], size)
         for j, s in enumerate(active):
             if slots[s].wide:
                 vol = step(params, place(_stack([filter_rows[j]])), volume=True)["volume"]
@@ -317,8 +324,10 @@ def track_split(
                         slot.log_w[i] = slot.log_w[i] + jnp.log(
                             jnp.maximum(1.0 - moved["dropped"], 1e-30)
                         )
+                # the tracking window's tile is cfg's: its volume's centre is the window
+                tile_cfg = slot.cfg if slot.wide else cfg
                 tile, centre = filter_tile(
-                    split.rasters[slot.drive.city], slot.beliefs[i], slot.cfg
+                    split.rasters[slot.drive.city], slot.beliefs[i], tile_cfg
                 )
                 pose = np.asarray(row["pose"], np.float64)
                 filter_rows.append(

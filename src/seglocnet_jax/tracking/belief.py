@@ -56,11 +56,11 @@ class TrackerConfig:
       track_size: cells per axis of the *tracking window* (odd, < ``size``; 0: none): once a
         drive is down to one window whose ``track_size`` box around the mode has held
         ``acquire_mass`` for ``acquire_frames`` frames, the filter narrows to that box (its
-        tile is ``track_size - 1 + bev_size`` pixels: 192 for 65, whose score volume is the
-        centre of the ``size`` window's, cell for cell); a detected loss widens it back to the
-        ``size`` window (the acquisition window with one), uniform around the last estimate.
-        Locked, the belief spans a few metres: the ``size`` window's far cells cost every
-        pass over the volume and hold nothing.
+        likelihood: the centre of the ``size`` window's volume, the tile the network was
+        trained on cut around the same point); a detected loss widens it back to the ``size``
+        window (the acquisition window with one), uniform around the last estimate. Locked,
+        the belief spans a few metres: the ``size`` window's far cells cost every pass over the
+        volume and hold nothing.
       hypotheses: most windows tracked at once per drive (1: one window). With more, the
         first frame's posterior (over the prior box) is split among windows that cover it
         greedily, each centred on the strongest cell not yet covered (the first one is the
