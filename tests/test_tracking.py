@@ -7,6 +7,7 @@ every test fast."""
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -543,3 +544,53 @@ def test_scale_estimate_learns_the_odometry_scale_from_corrections():
     off = tr.ScaleEstimate(prior_m=0.0)
     off.observe(poses[0], poses[1], odo)
     assert off.scale == 1.0 and (off.apply(odo) == odo).all()
+
+
+def test_the_tracking_window_runs_the_full_windows_filter():
+    """A belief inside the 65-cell box: updating the tracking window with the centre of the
+    full window's log-likelihood (and its log mean) gives the full window's posterior on those
+    cells, its loss-test agreement, entropy and lock state."""
+    cfg = tr.TrackerConfig(num_rotations=K, track_size=65)
+    narrow_cfg = cfg.tracking_window()
+    assert narrow_cfg.reference_cells == cfg.num_cells
+    rng = np.random.default_rng(7)
+    full = tr.init_belief(cfg, (3.0, -2.0), sigma=4.0)
+    box = np.zeros((K, 129, 129), np.float32)
+    box[:, 32:97, 32:97] = 1.0
+    prob = np.asarray(full.prob) * box
+    full = full._replace(prob=jnp.asarray(prob / prob.sum()))
+    narrow, kept = tr.narrow(full, cfg, narrow_cfg, map_cell=jnp.array([0, 64, 64]))
+    assert float(kept) == pytest.approx(1.0)
+    ll = rng.normal(0.0, 2.0, (K, 129, 129)).astype(np.float32)
+    ll[3, 60:64, 66:70] += 6.0
+    log_mean = float(jax.nn.logsumexp(ll) - np.log(ll.size))
+    post_full, info_full = tr.update(full, ll, cfg)
+    post_narrow, info_narrow = tr.update(
+        narrow, ll[:, 32:97, 32:97], narrow_cfg, log_mean=log_mean, reset=False
+    )
+    want = np.asarray(post_full.prob)[:, 32:97, 32:97]
+    np.testing.assert_allclose(post_narrow.prob, want / want.sum(), rtol=1e-4, atol=1e-9)
+    assert float(info_narrow["agreement"]) == pytest.approx(float(info_full["agreement"]), abs=1e-3)
+    for key in ("entropy", "peak_mass"):
+        got, ref = info_narrow["estimate"][key], info_full["estimate"][key]
+        assert float(got) == pytest.approx(float(ref), abs=1e-4), key
+    assert bool(info_narrow["lost"]) == bool(info_full["lost"])
+    assert bool(post_narrow.locked) == bool(post_full.locked)
+    np.testing.assert_allclose(
+        info_narrow["estimate"]["map_pose"], info_full["estimate"]["map_pose"], atol=1e-4
+    )
+
+
+def test_reset_is_the_updates_loss_path():
+    cfg = tr.TrackerConfig(num_rotations=K, lost_log_odds=1.0)
+    belief = tr.init_belief(cfg, (0.0, 0.0), sigma=1.0)
+    ll = np.zeros((K, 129, 129), np.float32)
+    ll[5, 10, 120] = 30.0  # far from the belief: the prior did not predict this frame
+    lost, info = tr.update(belief, ll, cfg)
+    assert bool(info["lost"]) and int(lost.losses) == 1
+    kept, info_kept = tr.update(belief, ll, cfg, reset=False)
+    assert bool(info_kept["lost"]) and int(kept.losses) == 0
+    again, est = tr.reset(kept, ll, cfg)
+    np.testing.assert_array_equal(again.prob, lost.prob)
+    assert int(again.losses) == 1 and not bool(again.locked)
+    np.testing.assert_array_equal(est["map_cell"], [5, 10, 120])

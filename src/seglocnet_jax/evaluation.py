@@ -47,7 +47,7 @@ MODES = ("single", "sequential", "both")
 TRACE_COUNTS: dict[tuple, int] = {}
 
 # TrackerConfig fields that eval.tracker does not hold: the solver and geometry fix them.
-_TRACKER_DERIVED = ("num_rotations", "size", "resolution", "bev_size")
+_TRACKER_DERIVED = ("num_rotations", "size", "resolution", "bev_size", "reference_size")
 # TrackerConfig's motion-noise fields: null in eval.tracker means "from eval.odometry".
 TRACKER_MOTION_FIELDS = ("sigma_xy", "sigma_xy_per_m", "sigma_yaw", "sigma_yaw_per_rad")
 # Where the app's default differs from the filter's own (TrackerConfig: one window): a bank of

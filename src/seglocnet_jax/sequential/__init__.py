@@ -13,7 +13,10 @@ Bayes filter over the solver's pose grid (:mod:`seglocnet_jax.tracking`), frame 
               volume = the one localize step (evaluation.make_localize_step, volume variant)
               belief = update(belief, log_softmax(volume / T))   # loss detection + re-widening
               (acquisition window: narrowed to the 129-cell window once the box around the
-              mode holds the belief; a detected loss goes back to it)
+              mode holds the belief; a detected loss goes back to it. Tracking window,
+              eval.tracker.track_size: one window left and locked on, the filter narrows to
+              the box of that many cells around the mode, its likelihood the centre of the
+              volume; a detected loss widens it back)
 
 What the filter reads: the sensors (through the network or, for ``bev_source="gt"``, the GT
 labels), the map, the first frame's stored coarse prior and the odometry. The odometry is the

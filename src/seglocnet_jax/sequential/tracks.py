@@ -181,11 +181,13 @@ def _log_likelihood(volume, temperature):
 
 @functools.partial(jax.jit, static_argnames="size")
 def _centre(volume, size: int):
-    """The central ``size x size`` cells of a ``(K, N, N)`` volume: the tracking window's
-    cells of the volume of the tile around its centre (for every variant: the network sees the
-    tile it was trained on)."""
+    """The central ``size x size`` cells of a ``(K, N, N)`` log-likelihood volume (the
+    tracking window's cells of the volume of the full tile around its centre: every variant
+    sees the tile it was trained on) and the log of the mean of ``exp`` over the whole volume
+    (the loss test's uniform alternative: the full window's)."""
     o = (volume.shape[-1] - size) // 2
-    return volume[:, o : o + size, o : o + size]
+    log_mean = jax.nn.logsumexp(volume) - np.log(volume.size)
+    return volume[:, o : o + size, o : o + size], log_mean
 
 
 @dataclasses.dataclass
@@ -258,7 +260,10 @@ def track_split(
     larger tile: a program of its own), and the drive narrows to ``cfg``'s window once the box
     around the mode has held ``cfg.acquire_mass`` for ``cfg.acquire_frames`` frames in a row
     (:func:`tracking.narrow`). A detected loss sends
-    the drive back to the acquisition window, uniform over the box around its last estimate."""
+    the drive back to the acquisition window, uniform over the box around its last estimate.
+    With a tracking window (``cfg.track_size``) a drive down to one window narrows to it the
+    same way (:func:`_next_window`); its frames are localized on ``cfg``'s tile around the
+    window centre, and the window's likelihood is the volume's centre."""
     batch_size = max(1, min(batch_size, len(drives)))
     wide_cfg = cfg.acquisition()
     pending = collections.deque(drives)
@@ -294,13 +299,13 @@ def track_split(
             lik = _log_likelihood(vol, temperature)  # (B, K, N, N)
             for i, j in enumerate(chunk):
                 size = slots[active[j]].cfg.size
-                out[j] = lik[i] if size == cfg.size else _centre(lik[i], size)
+                # a tracking window: (its centre, the whole volume, log mean of exp over it)
+                out[j] = lik[i] if size == cfg.size else (*_centre(lik[i], size), lik[i])
         for j, s in enumerate(active):
             if slots[s].wide:
                 vol = step(params, place(_stack([filter_rows[j]])), volume=True)["volume"]
                 out[j] = _log_likelihood(vol, temperature)[0]
-        for v in out.values():  # dispatch is asynchronous: time the steps, not the filter
-            v.block_until_ready()
+        jax.block_until_ready(out)  # dispatch is asynchronous: time the steps, not the filter
         return out
 
     fill()
@@ -353,9 +358,23 @@ def track_split(
             # The evidence only weighs windows against each other: one window needs none (frame
             # 0's split sets the weights afterwards).
             weigh = len(slot.beliefs) > 1
-            slot.beliefs[i], info = tracking.update(
-                slot.beliefs[i], log_lik[r], slot.cfg, evidence=weigh
-            )
+            if slot.cfg.size < cfg.size:  # the tracking window runs the full window's filter
+                centre_lik, log_mean, whole = log_lik[r]
+                belief, info = tracking.update(
+                    slot.beliefs[i], centre_lik, slot.cfg, log_mean=log_mean, reset=False
+                )
+                if bool(info["lost"]):  # reset the full window, with the whole volume
+                    start = tracking.init_belief(
+                        cfg, tracking.window_centre(belief, slot.cfg), tuple(belief.origin)
+                    )
+                    belief, est = tracking.reset(start._replace(losses=belief.losses), whole, cfg)
+                    info = {**info, "estimate": est}
+                    slot.cfg, slot.held = cfg, 0
+                slot.beliefs[i] = belief
+            else:
+                slot.beliefs[i], info = tracking.update(
+                    slot.beliefs[i], log_lik[r], slot.cfg, evidence=weigh
+                )
             slot.map_cells[i] = info["estimate"]["map_cell"]
             slot.infos[i] = info
             if weigh:
@@ -441,27 +460,24 @@ def _weigh_windows(slot: _Slot, cfg: tracking.TrackerConfig, *, first: bool) -> 
 
 
 def _next_window(slot: _Slot, lost: bool, cfg, wide_cfg, raster) -> None:
-    """The window the slot's next frame is tracked in. A detected loss (in any window) in a
-    window other than ``cfg``'s without an acquisition window starts the widest window again
-    (the acquisition window, else ``cfg``'s), uniform over the box around the window centre
-    (the last estimate; the loss count kept); in ``cfg``'s window without an acquisition
-    window the update has already reset the belief in place. A window narrows to the next
-    smaller one (acquisition -> ``cfg`` -> tracking window, the last only with one window
-    left) once the smaller box around the mode has held ``cfg.acquire_mass`` for
-    ``cfg.acquire_frames`` frames in a row (:func:`tracking.narrow`)."""
-    track_cfg = cfg.tracking_window()
-    if lost and (wide_cfg is not None or slot.cfg is not cfg):
+    """The window the slot's next frame is tracked in. With an acquisition window, a detected
+    loss (in any window) starts it again, uniform over the box around the window centre (the
+    last estimate; the loss count kept); without one the update has reset the belief in the
+    ``cfg`` window already. A window narrows to the next smaller one (acquisition -> ``cfg``
+    -> tracking window, the last only with one window left) once the smaller box around the
+    mode has held ``cfg.acquire_mass`` for ``cfg.acquire_frames`` frames in a row
+    (:func:`tracking.narrow`)."""
+    if lost and wide_cfg is not None:
         losses = slot.belief.losses
-        centre = tracking.window_centre(slot.belief, slot.cfg)
-        belief = start_belief(raster, centre, cfg)
-        slot.wide = wide_cfg is not None
-        slot.cfg, slot.held = wide_cfg if slot.wide else cfg, 0
+        belief = start_belief(raster, tracking.window_centre(slot.belief, slot.cfg), cfg)
+        slot.cfg, slot.wide, slot.held = wide_cfg, True, 0
         # The next predict moves the window with the last estimate's heading, centre kept (the
         # uniform belief's own first maximum is a corner of the box: the window would jump).
         k = 0 if slot.map_cells[0] is None else slot.map_cells[0][0]
-        cell = jnp.stack([jnp.asarray(k, jnp.int32), *[jnp.int32(slot.cfg.centre)] * 2])
+        cell = jnp.stack([jnp.asarray(k, jnp.int32), *[jnp.int32(wide_cfg.centre)] * 2])
         slot.beliefs, slot.map_cells, slot.infos = [belief._replace(losses=losses)], [cell], [None]
         return
+    track_cfg = cfg.tracking_window()
     if lost:
         slot.held = 0
         return

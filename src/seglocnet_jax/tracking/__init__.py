@@ -39,6 +39,11 @@ One frame of a drive::
   (uniform over the ``size`` window around it, zero outside). A first peak at the far side of
   the box then moves the window onto it without losing the truth's cells; :func:`narrow` cuts
   the belief to the ``size`` window around its mode once that box holds ``acquire_mass``.
+* tracking window (``track_size``, 65 cells): a drive down to one window that has locked on
+  (its ``track_size`` box around the mode held ``acquire_mass`` for ``acquire_frames``
+  frames) is cut to that box by :func:`narrow`; its likelihood is the centre of the volume of
+  the full tile around the window centre. A detected loss widens it back. A quarter of the
+  cells: every pass over the volume costs a quarter.
 * several hypotheses (``hypotheses`` > 1, :mod:`~seglocnet_jax.tracking.hypotheses`): frame
   0's posterior is split among windows that cover it greedily (the first is the single
   window's), each tracked as a filter of its own; the
@@ -79,7 +84,13 @@ from seglocnet_jax.tracking.odometry import (
     simulate,
     tracker_noise,
 )
-from seglocnet_jax.tracking.posterior import estimate, fit_temperature, in_credible_region, update
+from seglocnet_jax.tracking.posterior import (
+    estimate,
+    fit_temperature,
+    in_credible_region,
+    reset,
+    update,
+)
 
 __all__ = [
     "TrackerConfig",
@@ -94,6 +105,7 @@ __all__ = [
     "narrow",
     "hypotheses",
     "update",
+    "reset",
     "estimate",
     "in_credible_region",
     "fit_temperature",

@@ -58,9 +58,15 @@ class TrackerConfig:
         ``acquire_mass`` for ``acquire_frames`` frames, the filter narrows to that box (its
         likelihood: the centre of the ``size`` window's volume, the tile the network was
         trained on cut around the same point); a detected loss widens it back to the ``size``
-        window (the acquisition window with one), uniform around the last estimate. Locked,
-        the belief spans a few metres: the ``size`` window's far cells cost every pass over the
-        volume and hold nothing.
+        window (the acquisition window with one). Locked, the belief spans a few metres: the
+        ``size`` window's far cells cost every pass over the volume and hold nothing. The
+        tracking window runs the ``size`` window's filter on fewer cells: its floor, loss test
+        and entropy are the ``size`` window's (``reference_size``, the update's ``log_mean``),
+        and a loss there resets the ``size`` window with the frame's whole volume. Needs
+        ``outlier = 0`` (the robust likelihood is normalized over the window).
+      reference_size: cells per axis of the window whose filter this one runs (0: this one;
+        the tracking window's is ``size``): the floor is spread over its cells and the
+        entropy normalized by its count. Derived, not a setting.
       hypotheses: most windows tracked at once per drive (1: one window). With more, the
         first frame's posterior (over the prior box) is split among windows that cover it
         greedily, each centred on the strongest cell not yet covered (the first one is the
@@ -100,6 +106,7 @@ class TrackerConfig:
     hypothesis_prune: float = 10.0
     scale_prior_m: float = 200.0
     track_size: int = 0
+    reference_size: int = 0
 
     def __post_init__(self):
         if self.num_rotations < 1:
@@ -131,6 +138,16 @@ class TrackerConfig:
                 f"track_size must be 0 (no tracking window) or odd, >= 3 and < size "
                 f"({self.size}), got {self.track_size}"
             )
+        if self.track_size and self.outlier > 0:
+            raise ValueError(
+                f"track_size = {self.track_size} needs outlier = 0 (got {self.outlier}): the "
+                "robust likelihood is normalized over the window, the tracking window's is not "
+                "the full window's"
+            )
+        if self.reference_size and self.reference_size < self.size:
+            raise ValueError(
+                f"reference_size must be 0 or >= size ({self.size}), got {self.reference_size}"
+            )
         if not 0.0 < self.acquire_mass <= 1.0:
             raise ValueError(f"acquire_mass must be in (0, 1], got {self.acquire_mass}")
         if self.acquire_frames < 1:
@@ -158,7 +175,13 @@ class TrackerConfig:
         """The config of the tracking window (``size = track_size``; None without one)."""
         if not self.track_size:
             return None
-        return dataclasses.replace(self, size=self.track_size, acquire_size=0, track_size=0)
+        return dataclasses.replace(
+            self,
+            size=self.track_size,
+            acquire_size=0,
+            track_size=0,
+            reference_size=self.reference_size or self.size,
+        )
 
     @property
     def centre(self) -> int:
@@ -173,6 +196,13 @@ class TrackerConfig:
     @property
     def num_cells(self) -> int:
         return self.num_rotations * self.size * self.size
+
+    @property
+    def reference_cells(self) -> int:
+        """Cells of the window whose filter this one runs (:attr:`num_cells` but for a
+        tracking window: the full window's)."""
+        ref = self.reference_size or self.size
+        return self.num_rotations * ref * ref
 
 
 class Belief(NamedTuple):

@@ -53,7 +53,8 @@ def _estimate(belief: Belief, cfg: TrackerConfig, p_k=None) -> dict:
         "cov_xy": jnp.array([[cxx, cxy], [cxy, cyy]]),
         "yaw_std": jnp.sqrt(-2.0 * jnp.log(resultant)),
         "peak_mass": box.sum(),
-        "entropy": entropy / math.log(cfg.size * cfg.size),
+        # normalized by the reference window's count (a tracking window's: the full one's)
+        "entropy": entropy / math.log(cfg.reference_cells // cfg.num_rotations),
         "locked": belief.locked,
         "losses": belief.losses,
     }
@@ -80,10 +81,12 @@ def _likelihood(log_lik, cfg: TrackerConfig):
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
-def _update_kernel(belief: Belief, log_lik, cfg: TrackerConfig):
+def _update_kernel(belief: Belief, log_lik, log_mean, cfg: TrackerConfig):
     n = cfg.num_cells
     lik = _likelihood(log_lik, cfg)
-    prior = (1.0 - cfg.floor) * belief.prob + cfg.floor / n  # the prior with the floor
+    # the prior with the floor (spread over the reference window's cells: a tracking window's
+    # cells get the full window's floor)
+    prior = (1.0 - cfg.floor) * belief.prob + cfg.floor / cfg.reference_cells
     # Per slice: the unnormalized posterior's yaw marginal, whose sum is the evidence
     # z = (1 - floor) sum prior * L + floor * mean L (the prior sums to 1), and the
     # likelihood's, in one pass. The barrier keeps XLA from turning z or z_mean into a
@@ -91,13 +94,18 @@ def _update_kernel(belief: Belief, log_lik, cfg: TrackerConfig):
     p_k, l_k = jax.lax.optimization_barrier(
         (jnp.sum(prior * lik, axis=(1, 2)), jnp.sum(lik, axis=(1, 2)))
     )  # (K,) each
-    z_mean = l_k.sum() / n  # sum uniform * L
+    # sum uniform * L: over this window, or (log_mean) over the reference window, whose
+    # volume this window's log-likelihood is the centre of (in units of exp(max) here)
+    if log_mean is None:
+        log_z_mean = jnp.log(l_k.sum() / n)
+    else:
+        log_z_mean = log_mean - log_lik.max()
     # z = 0 only when floor = 0 and the prior misses every cell the likelihood allows: then
     # the agreement is -inf and the loss test below resets the belief.
     z = jnp.maximum(p_k.sum(), 1e-38)
     post = prior * lik / z
     stats = _estimate(belief._replace(prob=post), cfg, p_k / z)
-    agreement = jnp.log(z) - jnp.log(z_mean)  # log Bayes factor, this frame (nats)
+    agreement = jnp.log(z) - log_z_mean  # log Bayes factor, this frame (nats)
     cusum = jnp.minimum(0.0, belief.cusum + agreement)
     by_odds = (cfg.lost_log_odds > 0) & (cusum < -cfg.lost_log_odds)
     by_shape = belief.locked & (
@@ -137,7 +145,13 @@ def _max(log_lik):
 
 
 def update(
-    belief: Belief, log_likelihood, cfg: TrackerConfig, *, evidence: bool = False
+    belief: Belief,
+    log_likelihood,
+    cfg: TrackerConfig,
+    *,
+    evidence: bool = False,
+    log_mean=None,
+    reset: bool = True,
 ) -> tuple[Belief, dict]:
     """Bayes update with one frame's log-likelihood over the window's cells.
 
@@ -146,6 +160,12 @@ def update(
         ``solver.log_softmax_volume(volume, temperature)`` of the frame's score volume, the
         tile cut around this belief's window (see :func:`fit_temperature`).
       evidence: also return ``log_evidence`` (one more pass over the volume).
+      log_mean: the log of the mean of ``exp(log_likelihood)`` over the reference window's
+        cells (``cfg.reference_size``: a tracking window's likelihood is the centre of that
+        window's volume), the uniform alternative of the loss test; None: this window's.
+      reset: on a detected loss, reset the belief (re-widened prior times the likelihood);
+        False: return it as updated, ``lost`` set, for the caller to reset (:func:`reset`: a
+        tracking window resets the full window with the frame's whole volume).
 
     Returns:
       The posterior and ``{"agreement": log Bayes factor of this frame (prior vs uniform,
@@ -164,14 +184,30 @@ def update(
             f"evidence needs cfg.outlier = 0 (got {cfg.outlier}): the robust likelihood is "
             "normalized per window, so its sum is no evidence"
         )
-    new, info = _update_kernel(belief, log_lik, cfg)
+    if log_mean is not None and cfg.outlier > 0:
+        raise ValueError(f"log_mean needs cfg.outlier = 0, got {cfg.outlier}")
+    if log_mean is not None:
+        log_mean = jnp.asarray(log_mean, jnp.float32)
+    new, info = _update_kernel(belief, log_lik, log_mean, cfg)
     log_z = info.pop("log_z")
     if evidence:
         info["log_evidence"] = log_z + _max(log_lik)
-    if bool(info["lost"]):  # the one host sync of a frame: rare path, its own program
+    if reset and bool(info["lost"]):  # the one host sync of a frame: rare path, its own program
         new, est = _reset_kernel(new, log_lik, cfg)
         info = {**info, "estimate": est}
     return new, info
+
+
+def reset(belief: Belief, log_likelihood, cfg: TrackerConfig) -> tuple[Belief, dict]:
+    """The belief after a detected loss: the re-widened prior (uniform over the window, or
+    ``cfg.recover_sigma`` around its centre; uniform over yaw) times the frame's likelihood,
+    the loss counted, CUSUM and lock cleared (what :func:`update` does on a loss). Returns the
+    belief and its :func:`estimate`."""
+    log_lik = jnp.asarray(log_likelihood, jnp.float32)
+    expected = (cfg.num_rotations, cfg.size, cfg.size)
+    if log_lik.shape != expected:
+        raise ValueError(f"log_likelihood must be {expected}, got {log_lik.shape}")
+    return _reset_kernel(belief, log_lik, cfg)
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
