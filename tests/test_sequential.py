@@ -342,7 +342,7 @@ def test_the_tracking_windows_likelihood_is_the_centre_of_its_tiles_volume():
     assert tile.shape[-1] == 256
     np.testing.assert_allclose(centre, tr.window_centre(belief, narrow_cfg))
     volume = np.random.default_rng(0).normal(size=(K, 129, 129)).astype(np.float32)
-    window, log_mean = tracks._centre(jnp.asarray(volume), 65)
+    window, log_mean = tr.crop_likelihood(jnp.asarray(volume), narrow_cfg)
     window = np.asarray(window)
     want = np.log(np.mean(np.exp(volume.astype(np.float64))))
     assert float(log_mean) == pytest.approx(want, abs=1e-4)  # the full window's

@@ -563,11 +563,11 @@ def test_the_tracking_window_runs_the_full_windows_filter():
     assert float(kept) == pytest.approx(1.0)
     ll = rng.normal(0.0, 2.0, (K, 129, 129)).astype(np.float32)
     ll[3, 60:64, 66:70] += 6.0
-    log_mean = float(jax.nn.logsumexp(ll) - np.log(ll.size))
+    centre, log_mean = tr.crop_likelihood(jnp.asarray(ll), narrow_cfg)
+    np.testing.assert_array_equal(centre, ll[:, 32:97, 32:97])
+    assert float(log_mean) == pytest.approx(float(jax.nn.logsumexp(ll) - np.log(ll.size)))
     post_full, info_full = tr.update(full, ll, cfg)
-    post_narrow, info_narrow = tr.update(
-        narrow, ll[:, 32:97, 32:97], narrow_cfg, log_mean=log_mean, reset=False
-    )
+    post_narrow, info_narrow = tr.update(narrow, centre, narrow_cfg, log_mean=log_mean, reset=False)
     want = np.asarray(post_full.prob)[:, 32:97, 32:97]
     np.testing.assert_allclose(post_narrow.prob, want / want.sum(), rtol=1e-4, atol=1e-9)
     assert float(info_narrow["agreement"]) == pytest.approx(float(info_full["agreement"]), abs=1e-3)

@@ -179,17 +179,6 @@ def _log_likelihood(volume, temperature):
     return volume / temperature
 
 
-@functools.partial(jax.jit, static_argnames="size")
-def _centre(volume, size: int):
-    """The central ``size x size`` cells of a ``(K, N, N)`` log-likelihood volume (the
-    tracking window's cells of the volume of the full tile around its centre: every variant
-    sees the tile it was trained on) and the log of the mean of ``exp`` over the whole volume
-    (the loss test's uniform alternative: the full window's)."""
-    o = (volume.shape[-1] - size) // 2
-    log_mean = jax.nn.logsumexp(volume) - np.log(volume.size)
-    return volume[:, o : o + size, o : o + size], log_mean
-
-
 @dataclasses.dataclass
 class Track:
     """Per-frame outputs of one tracked drive (``T`` frames)."""
@@ -287,8 +276,8 @@ def track_split(
 
     def volumes(filter_rows, active):
         """The log-likelihood volume of each row (``active``: its slot): the ``cfg`` tiles in
-        padded batches of ``batch_size`` (a tracking window's volume is the centre of its
-        tile's), each acquiring one on its own."""
+        padded batches of ``batch_size`` (a tracking window's too: its likelihood is the
+        volume's centre), each acquiring one on its own."""
         out = {}
         narrow = [j for j, s in enumerate(active) if not slots[s].wide]
         for start in range(0, len(narrow), batch_size):
@@ -297,10 +286,7 @@ def track_split(
             rows += [rows[0]] * (batch_size - len(rows))  # static shapes
             vol = step(params, place(_stack(rows)), volume=True)["volume"]
             lik = _log_likelihood(vol, temperature)  # (B, K, N, N)
-            for i, j in enumerate(chunk):
-                size = slots[active[j]].cfg.size
-                # a tracking window: (its centre, the whole volume, log mean of exp over it)
-                out[j] = lik[i] if size == cfg.size else (*_centre(lik[i], size), lik[i])
+            out.update({j: lik[i] for i, j in enumerate(chunk)})
         for j, s in enumerate(active):
             if slots[s].wide:
                 vol = step(params, place(_stack([filter_rows[j]])), volume=True)["volume"]
@@ -359,7 +345,8 @@ def track_split(
             # 0's split sets the weights afterwards).
             weigh = len(slot.beliefs) > 1
             if slot.cfg.size < cfg.size:  # the tracking window runs the full window's filter
-                centre_lik, log_mean, whole = log_lik[r]
+                whole = log_lik[r]
+                centre_lik, log_mean = tracking.crop_likelihood(whole, slot.cfg)
                 belief, info = tracking.update(
                     slot.beliefs[i], centre_lik, slot.cfg, log_mean=log_mean, reset=False
                 )

@@ -85,6 +85,7 @@ from seglocnet_jax.tracking.odometry import (
     tracker_noise,
 )
 from seglocnet_jax.tracking.posterior import (
+    crop_likelihood,
     estimate,
     fit_temperature,
     in_credible_region,
@@ -106,6 +107,7 @@ __all__ = [
     "hypotheses",
     "update",
     "reset",
+    "crop_likelihood",
     "estimate",
     "in_credible_region",
     "fit_temperature",

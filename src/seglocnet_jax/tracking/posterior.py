@@ -198,6 +198,21 @@ def update(
     return new, info
 
 
+@functools.partial(jax.jit, static_argnames="cfg")
+def crop_likelihood(log_likelihood, cfg: TrackerConfig) -> tuple[jax.Array, jax.Array]:
+    """A tracking window's likelihood from the volume of the full tile around its centre:
+    ``(the central (K, size, size) cells, the log of the mean of exp over the whole volume)``,
+    the second the loss test's uniform alternative (``update(..., log_mean=)``; ``cfg``: the
+    tracking window's, ``cfg.reference_size`` the volume's side)."""
+    ref = cfg.reference_size or cfg.size
+    expected = (cfg.num_rotations, ref, ref)
+    if log_likelihood.shape != expected:
+        raise ValueError(f"log_likelihood must be {expected}, got {log_likelihood.shape}")
+    o = (ref - cfg.size) // 2
+    log_mean = jax.nn.logsumexp(log_likelihood) - math.log(log_likelihood.size)
+    return log_likelihood[:, o : o + cfg.size, o : o + cfg.size], log_mean
+
+
 def reset(belief: Belief, log_likelihood, cfg: TrackerConfig) -> tuple[Belief, dict]:
     """The belief after a detected loss: the re-widened prior (uniform over the window, or
     ``cfg.recover_sigma`` around its centre; uniform over yaw) times the frame's likelihood,
