@@ -536,11 +536,12 @@ def _tree(data_root, **eval_):
 
 
 def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, capsys):
-    # With the acquisition window (off by default; one window, not the default bank): the app's
-    # path through both windows.
-    tracker = {"acquire_size": 257, "hypotheses": 1}
+    # With the acquisition window (off by default; one window, not the default bank) and the
+    # tracking window (on by default), each left after one frame: the app's path through all
+    # three windows (acquisition -> 129 cells -> 65 cells) within the short drives.
+    tracker = {"acquire_size": 257, "hypotheses": 1, "acquire_frames": 1}
     cfg = build_experiment(_tree(data_root, bev_source="gt", tracker=tracker))
-    assert cfg.eval.tracker.acquire_size == 257
+    assert cfg.eval.tracker.acquire_size == 257 and cfg.eval.tracker.track_size == 65
     key = (cfg.model, cfg.solver, "gt", "volume")
     before = evaluation.TRACE_COUNTS.get(key, 0)
     workdir = str(tmp_path / "gt")
@@ -575,10 +576,15 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
     assert s["mean_log_p_gt"] <= 0.0
     assert set(s["coverage"]) == {f"{m:g}" for m in sequential.MASSES}
     assert s["filter_ms_per_frame"] > 0 and sum(d["frames"] for d in s["per_drive"]) == s["frames"]
-    # Two programs for every frame: the batch of 129-cell windows and one acquisition window
-    # (drive by drive), where each drive spends at least its first acquire_frames frames.
+    # Two programs for every frame: the batch of 129-cell windows (the tracking window's frames
+    # too: the centre of their volume) and one acquisition window (drive by drive), where each
+    # drive spends its first frame; then a frame in the 129-cell window, then the 65-cell one.
     assert evaluation.TRACE_COUNTS[key] - before == 2
-    assert all(d["frames_acquiring"] >= 3 for d in s["per_drive"]) and s["acquiring_pct"] > 0
+    assert all(d["frames_acquiring"] >= 1 for d in s["per_drive"]) and s["acquiring_pct"] > 0
+    assert all(d["frames_narrowed"] >= 1 for d in s["per_drive"]) and s["narrowed_pct"] > 0
+    arrays = np.load(os.path.join(workdir, "sequential", "drives_val.npz"))
+    assert not (arrays["narrowed"] & arrays["acquiring"]).any()
+    assert "in tracking window (%)" in out
     assert "seq_test [hd_road-building, gt] drives_val filtered" in out
     assert "GT in 90% region (%)" in out and "[seglocnet] sequential evaluation:" in out
     figures = sorted(os.listdir(os.path.join(workdir, "figures", "sequential")))

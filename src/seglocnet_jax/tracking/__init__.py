@@ -41,9 +41,13 @@ One frame of a drive::
   the belief to the ``size`` window around its mode once that box holds ``acquire_mass``.
 * tracking window (``track_size``, 65 cells): a drive down to one window that has locked on
   (its ``track_size`` box around the mode held ``acquire_mass`` for ``acquire_frames``
-  frames) is cut to that box by :func:`narrow`; its likelihood is the centre of the volume of
-  the full tile around the window centre. A detected loss widens it back. A quarter of the
-  cells: every pass over the volume costs a quarter.
+  frames) is cut to that box by :func:`narrow`. It runs the full window's filter on a quarter
+  of the cells: its likelihood is the centre of the volume of the full tile around the window
+  centre (:func:`crop_likelihood`), the floor is spread over the full window's cells, the loss
+  test compares against a uniform belief over the full window (``update(..., log_mean=)``)
+  and the entropy is normalized by its count; a detected loss resets the full window with the
+  frame's whole volume (:func:`reset`). Only mass more than ``track_size // 2`` cells from the
+  mode is dropped.
 * several hypotheses (``hypotheses`` > 1, :mod:`~seglocnet_jax.tracking.hypotheses`): frame
   0's posterior is split among windows that cover it greedily (the first is the single
   window's), each tracked as a filter of its own; the
