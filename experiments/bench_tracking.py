@@ -4,7 +4,8 @@ whole drives with the tiny network.
 A frame is predict (motion, blur, window re-centring) + update (one score volume's
 log-likelihood over the window's cells; it returns the posterior's estimate too) on a
 ``(K, N, N)`` belief (K = 256 by default) tracking a synthetic drive (a peaked likelihood at
-the true cell plus distractors and noise; making it is not timed). ``--window tracking`` (the
+the true cell plus distractors and noise; making it is not timed, and it is a buffer XLA
+wrote, as the app's volume over T is). ``--window tracking`` (the
 default): the tracking window a locked drive runs in (``TrackerConfig(track_size=N)
 .tracking_window()``, N = ``--track-size``, default the app's ``eval.tracker.track_size``,
 else 65, started on the truth: the app narrows a locked window; its update takes the centre of
@@ -77,7 +78,14 @@ def _likelihood(cfg: tracking.TrackerConfig, belief, pose, rng) -> jax.Array:
         hd, wd, kd = rng.integers(0, cfg.size, 2).tolist() + [rng.integers(cfg.num_rotations)]
         dk = np.minimum(np.abs(k - kd), cfg.num_rotations - np.abs(k - kd))[:, None, None]
         ll += 10.0 * np.exp(-0.5 * (((h - hd) ** 2 + (w - wd) ** 2) / 4.0 + dk**2 / 4.0))
-    return jnp.asarray(ll)
+    # As the app's likelihood: a buffer XLA wrote (the volume program's output over T), not
+    # host memory on loan: the update reads what a filter loop would read.
+    return _block(_over_temperature(jnp.asarray(ll), jnp.float32(1.0)))
+
+
+@jax.jit
+def _over_temperature(volume, temperature):
+    return volume / temperature
 
 
 def _block(tree):
