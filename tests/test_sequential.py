@@ -642,6 +642,7 @@ def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, cap
         ({"temperature_scales": [0.0, 1.0]}, "eval.temperature_scales"),
         ({"tracker": {"outlier": 1.0}}, "outlier"),
         ({"tracker": {"acquire_size": 257}}, "hypotheses = 4 needs outlier = 0 and acquire_size"),
+        ({"tracker": {"outlier": 0.1, "hypotheses": 1}}, "track_size = 65 needs outlier = 0"),
         ({"mode": "video"}, "eval.mode"),
         ({"temperature": -1.0}, "eval.temperature"),
         ({"max_drives": 0}, "eval.max_drives"),

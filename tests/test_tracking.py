@@ -143,6 +143,16 @@ def test_config_rejects_bad_values():
     with pytest.raises(ValueError, match="acquire_frames"):
         tr.TrackerConfig(acquire_frames=0)
     assert tr.TrackerConfig().acquisition() is None  # off by default
+    for bad in (129, 131, 64, 1):  # not smaller than size, even, too small
+        with pytest.raises(ValueError, match="track_size"):
+            tr.TrackerConfig(track_size=bad)
+    with pytest.raises(ValueError, match="track_size = 65 needs outlier = 0"):
+        tr.TrackerConfig(track_size=65, outlier=0.1)
+    with pytest.raises(ValueError, match="reference_size"):
+        tr.TrackerConfig(size=65, reference_size=33)
+    assert tr.TrackerConfig().tracking_window() is None  # off in the filter's own default
+    wide = tr.TrackerConfig(acquire_size=257, track_size=65).acquisition()
+    assert (wide.size, wide.track_size, wide.reference_size) == (257, 0, 0)
 
 
 # --------------------------------------------------------------------------- prediction
