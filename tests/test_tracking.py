@@ -557,9 +557,10 @@ def test_scale_estimate_learns_the_odometry_scale_from_corrections():
 
 
 def test_the_tracking_window_runs_the_full_windows_filter():
-    """A belief inside the 65-cell box: updating the tracking window with the centre of the
-    full window's log-likelihood (and its log mean) gives the full window's posterior on those
-    cells, its loss-test agreement, entropy and lock state."""
+    """A belief inside the 65-cell box: updating the tracking window by the full window's
+    log-likelihood (its centre, the loss test against its mean: update_tracking_window, the
+    app's step) gives the full window's posterior on those cells, its loss-test agreement,
+    entropy and lock state."""
     cfg = tr.TrackerConfig(num_rotations=K, track_size=65)
     narrow_cfg = cfg.tracking_window()
     assert narrow_cfg.reference_cells == cfg.num_cells
@@ -577,7 +578,8 @@ def test_the_tracking_window_runs_the_full_windows_filter():
     np.testing.assert_array_equal(centre, ll[:, 32:97, 32:97])
     assert float(log_mean) == pytest.approx(float(jax.nn.logsumexp(ll) - np.log(ll.size)))
     post_full, info_full = tr.update(full, ll, cfg)
-    post_narrow, info_narrow = tr.update(narrow, centre, narrow_cfg, log_mean=log_mean, reset=False)
+    post_narrow, info_narrow, window = tr.update_tracking_window(narrow, ll, narrow_cfg, cfg)
+    assert window is narrow_cfg  # no loss: still the tracking window
     want = np.asarray(post_full.prob)[:, 32:97, 32:97]
     np.testing.assert_allclose(post_narrow.prob, want / want.sum(), rtol=1e-4, atol=1e-9)
     assert float(info_narrow["agreement"]) == pytest.approx(float(info_full["agreement"]), abs=1e-3)
@@ -604,3 +606,19 @@ def test_reset_is_the_updates_loss_path():
     np.testing.assert_array_equal(again.prob, lost.prob)
     assert int(again.losses) == 1 and not bool(again.locked)
     np.testing.assert_array_equal(est["map_cell"], [5, 10, 120])
+
+
+def test_a_loss_in_the_tracking_window_resets_the_full_window():
+    """A frame whose peak the narrow belief did not predict: the loss is detected and the
+    belief becomes the full window's around the same centre, reset with the whole volume (its
+    mode on the peak, even one outside the tracking window), the loss counted."""
+    cfg = tr.TrackerConfig(num_rotations=K, track_size=65, lost_log_odds=1.0)
+    narrow_cfg = cfg.tracking_window()
+    belief = tr.init_belief(narrow_cfg, (3.0, -2.0), sigma=1.0)._replace(losses=jnp.int32(2))
+    ll = np.zeros((K, 129, 129), np.float32)
+    ll[5, 10, 120] = 30.0  # 27 m from the centre: outside the tracking window
+    new, info, window = tr.update_tracking_window(belief, ll, narrow_cfg, cfg)
+    assert window is cfg and bool(info["lost"]) and int(new.losses) == 3
+    assert new.prob.shape == (K, 129, 129)
+    np.testing.assert_allclose(tr.window_centre(new, cfg), tr.window_centre(belief, narrow_cfg))
+    np.testing.assert_array_equal(info["estimate"]["map_cell"], [5, 10, 120])

@@ -345,19 +345,11 @@ def track_split(
             # 0's split sets the weights afterwards).
             weigh = len(slot.beliefs) > 1
             if slot.cfg.size < cfg.size:  # the tracking window runs the full window's filter
-                whole = log_lik[r]
-                centre_lik, log_mean = tracking.crop_likelihood(whole, slot.cfg)
-                belief, info = tracking.update(
-                    slot.beliefs[i], centre_lik, slot.cfg, log_mean=log_mean, reset=False
+                slot.beliefs[i], info, window = tracking.update_tracking_window(
+                    slot.beliefs[i], log_lik[r], slot.cfg, cfg
                 )
-                if bool(info["lost"]):  # reset the full window, with the whole volume
-                    start = tracking.init_belief(
-                        cfg, tracking.window_centre(belief, slot.cfg), tuple(belief.origin)
-                    )
-                    belief, est = tracking.reset(start._replace(losses=belief.losses), whole, cfg)
-                    info = {**info, "estimate": est}
+                if window is cfg:  # a loss: reset in the full window
                     slot.cfg, slot.held = cfg, 0
-                slot.beliefs[i] = belief
             else:
                 slot.beliefs[i], info = tracking.update(
                     slot.beliefs[i], log_lik[r], slot.cfg, evidence=weigh

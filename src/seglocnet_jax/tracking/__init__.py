@@ -46,8 +46,8 @@ One frame of a drive::
   centre (:func:`crop_likelihood`), the floor is spread over the full window's cells, the loss
   test compares against a uniform belief over the full window (``update(..., log_mean=)``)
   and the entropy is normalized by its count; a detected loss resets the full window with the
-  frame's whole volume (:func:`reset`). Only mass more than ``track_size // 2`` cells from the
-  mode is dropped.
+  frame's whole volume (:func:`reset`): :func:`update_tracking_window`. Only mass more than
+  ``track_size // 2`` cells from the mode is dropped.
 * several hypotheses (``hypotheses`` > 1, :mod:`~seglocnet_jax.tracking.hypotheses`): frame
   0's posterior is split among windows that cover it greedily (the first is the single
   window's), each tracked as a filter of its own; the
@@ -95,6 +95,7 @@ from seglocnet_jax.tracking.posterior import (
     in_credible_region,
     reset,
     update,
+    update_tracking_window,
 )
 
 __all__ = [
@@ -112,6 +113,7 @@ __all__ = [
     "update",
     "reset",
     "crop_likelihood",
+    "update_tracking_window",
     "estimate",
     "in_credible_region",
     "fit_temperature",

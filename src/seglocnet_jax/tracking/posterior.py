@@ -16,6 +16,8 @@ from seglocnet_jax.tracking.belief import (
     TrackerConfig,
     _cell_offsets,
     cell_to_world,
+    init_belief,
+    window_centre,
 )
 from seglocnet_jax.tracking.motion import _map_cell
 
@@ -211,6 +213,26 @@ def crop_likelihood(log_likelihood, cfg: TrackerConfig) -> tuple[jax.Array, jax.
     o = (ref - cfg.size) // 2
     log_mean = jax.nn.logsumexp(log_likelihood) - math.log(log_likelihood.size)
     return log_likelihood[:, o : o + cfg.size, o : o + cfg.size], log_mean
+
+
+def update_tracking_window(
+    belief: Belief, log_likelihood, cfg: TrackerConfig, full: TrackerConfig
+) -> tuple[Belief, dict, TrackerConfig]:
+    """The update of a tracking window (``cfg = full.tracking_window()``) by the volume of the
+    full window's tile around its centre, ``(K, full.size, full.size)``: the full window's
+    filter on the window's cells (:func:`crop_likelihood`, the loss test against the whole
+    volume). On a detected loss the belief becomes the full window's, around the same centre,
+    reset with the whole volume (:func:`reset`), as the full window would be.
+
+    Returns the belief, the :func:`update` info and the config of the window it is in
+    (``cfg``, or ``full`` after a loss)."""
+    centre, log_mean = crop_likelihood(log_likelihood, cfg)
+    new, info = update(belief, centre, cfg, log_mean=log_mean, reset=False)
+    if not bool(info["lost"]):
+        return new, info, cfg
+    start = init_belief(full, window_centre(new, cfg), tuple(new.origin))
+    new, est = reset(start._replace(losses=new.losses), log_likelihood, full)
+    return new, {**info, "estimate": est}, full
 
 
 def reset(belief: Belief, log_likelihood, cfg: TrackerConfig) -> tuple[Belief, dict]:
