@@ -52,9 +52,10 @@ _TRACKER_DERIVED = ("num_rotations", "size", "resolution", "bev_size", "referenc
 TRACKER_MOTION_FIELDS = ("sigma_xy", "sigma_xy_per_m", "sigma_yaw", "sigma_yaw_per_rad")
 # Where the app's default differs from the filter's own (TrackerConfig: one window, no tracking
 # window): a bank of 4 windows, the setting chosen on the unseen city's validation drives, and
-# the 65-cell tracking window, which gave the same tracks there at a third of the filter's time
-# (docs/sequential.md).
-TRACKER_APP_DEFAULTS = {"hypotheses": 4, "track_size": 65}
+# the 65-cell tracking window, which gave the same tracks there at a third of the filter's time,
+# and windows pruned only 30 nats below the best (10 pruned the window on the truth of a
+# validation drive before the model's frames turned good there; docs/sequential.md).
+TRACKER_APP_DEFAULTS = {"hypotheses": 4, "hypothesis_prune": 30.0, "track_size": 65}
 
 
 def _tracker_section():
@@ -74,8 +75,9 @@ def _tracker_section():
         "``eval.tracker``: the motion-noise and track-loss fields of "
         ":class:`seglocnet_jax.tracking.TrackerConfig` (same names, meanings and defaults, "
         "built from its fields, except ``TRACKER_APP_DEFAULTS``: ``hypotheses`` = 4, a bank of "
-        "windows, where the filter's own default is one window, and ``track_size`` = 65, the "
-        "tracking window, where the filter's own has none). The motion-noise fields "
+        "windows, where the filter's own default is one window, ``hypothesis_prune`` = 30 nats "
+        "(the filter's own: 10), and ``track_size`` = 65, the tracking window, where the "
+        "filter's own has none). The motion-noise fields "
         f"({', '.join(TRACKER_MOTION_FIELDS)}) default to null: derived from ``eval.odometry`` "
         "(the noise the filter's prediction must allow for); a number overrides. K, the window "
         "size and the resolution follow the solver."
