@@ -222,6 +222,54 @@ def test_a_far_first_peak_loses_the_truth_with_one_window_only(acquire_size, hyp
         assert not track.acquiring.any() and (track.hypotheses == 1).all()
 
 
+def test_each_window_of_the_bank_learns_the_odometry_scale_of_its_own_track():
+    """Frames 0-9 peak at the truth (20) and, more strongly (25), at a look-alike 48 m away
+    that moves at 0.9 of the car's speed; from frame 10 only the truth peaks. The look-alike's
+    window leads the bank first and learns a scale of about 0.98 from its own track; the
+    truth's window, exact odometry along its track, learns about 1. Once the truth's window
+    leads, the drive's scale is its window's: not the look-alike's carried over."""
+    drive = _straight_drive(n=20)
+    wrong0 = drive.priors[0] + [15.0, -25.0]  # inside the prior box
+    assert np.hypot(*(wrong0 - drive.poses[0, :2])) > 45.0
+
+    def step(params, batch, figures=False, volume=False):
+        b = len(batch["pose"])
+        out = {"pose_tile": jnp.zeros((b, 3))}
+        if volume:
+            n = batch["tile"].shape[-1] - geometry.BEV_SIZE + 1
+            vol = np.zeros((b, K, n, n), np.float32)
+            for i in range(b):
+                t = int(batch["frame_index"][i])
+                truth = np.asarray(batch["pose_tile"][i], np.float64)
+                peaks = [(truth, 20.0)]
+                if t < 10:
+                    wrong = wrong0 + 0.9 * (drive.poses[t, :2] - drive.poses[0, :2])
+                    off = wrong - np.asarray(batch["tile_center"][i])
+                    peaks.append((np.array([*off, truth[2]]), 40.0))
+                for p, score in peaks:
+                    cell = np.round(geometry.pose_to_cell(p, K, size=n)).astype(int)
+                    if (0 <= cell[1:]).all() and (cell[1:] < n).all():
+                        vol[i, cell[0] % K, cell[1], cell[2]] = score
+            out["volume"] = jnp.asarray(vol)
+        return out
+
+    section = evaluation.TrackerSection(
+        hypotheses=2, hypothesis_prune=1000.0, lost_log_odds=0.0, lost_peak_mass=0.0
+    )
+    ev = evaluation.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
+    cfg = sequential.tracker_config(ev, K)
+    track = _track_one(step, _FakeSplit(_raster(5), drive), drive, cfg, _EXACT_ODOMETRY)
+    err = np.hypot(*(track.filtered[:, :2] - drive.poses[:, :2]).T)
+    assert (err[:10] > 30.0).all(), err  # the look-alike's window leads ...
+    assert (track.hypotheses == 2).all()  # (nothing pruned: both windows tracked throughout)
+    # ... and learns its own track's scale, (9 * 4.5 + 200) / (9 * 5 + 200) ~ 0.98
+    assert track.scale[9] == pytest.approx((9 * 4.5 + 200) / (9 * 5 + 200), abs=0.004)
+    lead = int(np.argmax(err < 1.0))  # the truth's window leads from here on
+    assert 10 <= lead <= 12 and err[lead:].max() < 1.0, err
+    # its scale: its own exact steps (~1), not the 0.98 carried over (~0.985 here)
+    assert np.abs(track.scale[lead:] - 1.0).max() < 0.004, track.scale
+
+
 def test_a_loss_in_either_window_restarts_the_acquisition_window_on_the_box():
     raster = _raster()
     cfg = tr.TrackerConfig(num_rotations=K, acquire_size=257)

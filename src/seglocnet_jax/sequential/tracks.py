@@ -203,8 +203,10 @@ def _stack(rows: list[dict]) -> dict:
 
 class _Slot:
     """One drive in flight in the lockstep batch: its windows (one, or with
-    ``cfg.hypotheses`` > 1 a bank of them, heaviest first) and their log weights; ``cfg`` is
-    the windows' (the acquisition window's while ``wide``)."""
+    ``cfg.hypotheses`` > 1 a bank of them, heaviest first), their log weights and each
+    window's own odometry-scale estimate, learned from that window's mode track (a window
+    that wins late keeps the scale of its own track, not the one learned on the window that
+    led before it); ``cfg`` is the windows' (the acquisition window's while ``wide``)."""
 
     def __init__(self, drive: Drive, belief, odometry, cfg, wide: bool):
         self.drive, self.odometry, self.t = drive, odometry, 0
@@ -212,7 +214,8 @@ class _Slot:
         self.map_cells = [None]  # (3,) of each window's last posterior
         self.infos = [None]  # each window's last update info
         self.cfg, self.wide = cfg, wide  # wide: in the acquisition window
-        self.scale = odometry_lib.ScaleEstimate(cfg.scale_prior_m)
+        self.scales = [odometry_lib.ScaleEstimate(cfg.scale_prior_m)]  # one per window
+        self.modes = [None]  # (3,) world, each window's last posterior mode (read out)
         self.held = 0  # consecutive frames the next smaller window's box held acquire_mass
         self.out = collections.defaultdict(list)
 
@@ -307,7 +310,7 @@ def track_split(
                 if slot.t:  # the previous estimate's MAP cell saves predict a pass
                     slot.beliefs[i], moved = tracking.predict(
                         slot.beliefs[i],
-                        slot.scale.apply(slot.odometry[slot.t]),
+                        slot.scales[i].apply(slot.odometry[slot.t]),
                         slot.cfg,
                         map_cell=slot.map_cells[i],
                     )
@@ -367,7 +370,10 @@ def track_split(
                 est = jax.device_get(tracking.estimate(slot.belief, slot.cfg))
             else:
                 est = jax.device_get(slot.infos[0]["estimate"])
-            mode = _readout(slot.belief, jnp.asarray(slot.map_cells[0]), slot.cfg)
+            modes = [
+                np.asarray(_readout(b, jnp.asarray(c), slot.cfg), np.float64)
+                for b, c in zip(slot.beliefs, slot.map_cells, strict=True)
+            ]
             above, log_p = hypotheses.mixture_readout(
                 slot.beliefs,
                 slot.log_w,
@@ -375,11 +381,12 @@ def track_split(
                 slot.cfg,
                 LOG_P_FLOOR_P,
             )
-            mode = np.asarray(mode, np.float64)
-            if slot.t:
-                slot.scale.observe(slot.out["filtered"][-1], mode, slot.odometry[slot.t])
-            slot.out["filtered"].append(mode)
-            slot.out["scale"].append(slot.scale.scale)
+            for scale, previous, mode in zip(slot.scales, slot.modes, modes, strict=True):
+                if previous is not None:  # each window learns from its own mode track
+                    scale.observe(previous, mode, slot.odometry[slot.t])
+            slot.modes = modes
+            slot.out["filtered"].append(modes[0])
+            slot.out["scale"].append(slot.scales[0].scale)  # the heaviest window's
             slot.out["single"].append(
                 solver.tile_pose_to_world(pose_tile[j], rows[j]["tile_center"])
             )
@@ -414,7 +421,9 @@ def track_split(
 def _weigh_windows(slot: _Slot, cfg: tracking.TrackerConfig, *, first: bool) -> None:
     """After a frame's update: with ``cfg.hypotheses`` > 1, frame 0's posterior is split among
     its modes (:func:`tracking.hypotheses.split_modes`); then the windows are pruned and merged
-    (:func:`tracking.hypotheses.prune_and_merge`), the heaviest first."""
+    (:func:`tracking.hypotheses.prune_and_merge`), the heaviest first. Frame 0's pieces each
+    start from the scale estimate so far (the prior); a window merged into another leaves the
+    survivor's estimate."""
     if cfg.hypotheses <= 1 or (not first and len(slot.beliefs) == 1):
         return  # one window left: nothing to weigh, prune or merge (its weight is 1)
     if first:
@@ -423,6 +432,8 @@ def _weigh_windows(slot: _Slot, cfg: tracking.TrackerConfig, *, first: bool) -> 
         slot.log_w = [lw for _, lw in pieces]
         slot.map_cells = [None] * len(pieces)
         slot.infos = [None] * len(pieces)
+        slot.scales = [dataclasses.replace(slot.scales[0]) for _ in pieces]
+        slot.modes = [slot.modes[0]] * len(pieces)
     cells = [
         tracking.estimate(b, slot.cfg)["map_cell"] if c is None else c
         for b, c in zip(slot.beliefs, slot.map_cells, strict=True)
@@ -435,6 +446,8 @@ def _weigh_windows(slot: _Slot, cfg: tracking.TrackerConfig, *, first: bool) -> 
     slot.beliefs = [slot.beliefs[i] for i in kept]
     slot.map_cells = [cells[i] for i in kept]
     slot.infos = [slot.infos[i] for i in kept]
+    slot.scales = [slot.scales[i] for i in kept]
+    slot.modes = [slot.modes[i] for i in kept]
     slot.log_w = list(log_w)
 
 
@@ -455,6 +468,7 @@ def _next_window(slot: _Slot, lost: bool, cfg, wide_cfg, raster) -> None:
         k = 0 if slot.map_cells[0] is None else slot.map_cells[0][0]
         cell = jnp.stack([jnp.asarray(k, jnp.int32), *[jnp.int32(wide_cfg.centre)] * 2])
         slot.beliefs, slot.map_cells, slot.infos = [belief._replace(losses=losses)], [cell], [None]
+        slot.scales, slot.modes = slot.scales[:1], slot.modes[:1]  # the heaviest window's
         return
     track_cfg = cfg.tracking_window()
     if lost:
@@ -471,4 +485,5 @@ def _next_window(slot: _Slot, lost: bool, cfg, wide_cfg, raster) -> None:
     if slot.held >= cfg.acquire_frames:
         # the next predict finds the mode in the new window
         slot.beliefs, slot.map_cells, slot.infos = [belief], [None], [None]
+        slot.scales, slot.modes = slot.scales[:1], slot.modes[:1]
         slot.cfg, slot.wide, slot.held = smaller, False, 0

@@ -77,7 +77,8 @@ class TrackerConfig:
       scale_prior_m: metres of prior weight on 1 in the filter's running estimate of the
         drive's odometry distance scale (:class:`~seglocnet_jax.tracking.odometry.
         ScaleEstimate`: the filtered track's along-track steps against the odometry's
-        distances; the prediction then scales the odometry by it); 0: the raw odometry.
+        distances, one estimate per window of a bank; the prediction then scales the
+        odometry by it); 0: the raw odometry.
       hypothesis_prune: nats; a window whose log weight falls this far below the best one's
         is dropped.
     """

@@ -167,7 +167,8 @@ def mixture_readout(beliefs, log_w, gt_cells, cfg: TrackerConfig, floor: float):
         return math.inf, math.log(floor)
     p = float(sum(wi * float(pi) for wi, pi in zip(w, probs, strict=True)))
     above = sum(
-        wi * float(_mass_above(b.prob, np.float32(p / wi)))
+        # a threshold above 1 (a light window): no cell of it is above; min() keeps float32 finite
+        wi * float(_mass_above(b.prob, np.float32(min(p / wi, 2.0))))
         for wi, b in zip(w, beliefs, strict=True)
         if wi > 0
     )

@@ -191,7 +191,7 @@ def tracker_noise(cfg: OdometryConfig, *, frame_dt: float = 0.5) -> dict[str, fl
 @dataclasses.dataclass
 class ScaleEstimate:
     """The filter's running estimate of one drive's odometry distance scale (the per-drive
-    ``1 + s`` of :func:`simulate`), from its own track: the along-track distance between
+    ``1 + s`` of :func:`simulate`), from one track: the along-track distance between
     consecutive filtered poses summed against the odometry's distance, with ``prior_m``
     metres of prior weight on a scale of 1::
 
@@ -201,7 +201,10 @@ class ScaleEstimate:
     predicted ``scale * distance`` and the estimate stays put; where it does (a junction, a
     building corner), the filter's correction moves the estimate. A step whose filtered pose
     is more than ``gate`` metres (along or across) from its prediction is a jump (a new mode,
-    a look-alike) and is left out. The estimate is clipped to ``1 +- max_error``.
+    a look-alike) and is left out. The estimate is clipped to ``1 +- max_error``. With a bank
+    of windows each window keeps its own, fed its own mode track (the sequential app's
+    lockstep loop): a window that wins late has learned from its own track, not from the
+    look-alike that led before it.
 
     Attributes:
       prior_m: metres of prior weight on 1 (0 disables: the scale stays 1).
