@@ -29,9 +29,10 @@ random (the cost does not depend on them; the likelihood is then noise, so the f
 its loss path more often than with a trained model: ``drive_losses`` counts it; and a bank of
 windows, the app's default, keeps more windows alive than on real drives:
 ``drive_windows_per_frame`` reports it, ``--hypotheses 1`` measures one window). Sensor frames
-cycle through 8 synthetic ones. Reported: frames per second of the whole loop, and its
+cycle through 8 synthetic ones. Reported: frames per second of the vehicle's loop, and its
 localize / filter / data milliseconds per frame (the loop's own timing, which leaves out its
-first 2 steps: compilation).
+first 2 steps: compilation); ``drive_score_ms_per_frame``, the GT's read-out the evaluation's
+metrics need, is timed apart and not in the rate.
 
 Milliseconds per frame (compile excluded; median and best over the frames) and per stage
 (``estimate_ms``: a standalone :func:`tracking.estimate`, not part of the frame), wall clock
@@ -276,6 +277,7 @@ def bench_drives(
     )
     wall = time.perf_counter() - t0
     n = timing["frames"]
+    # the vehicle's loop: the GT's read-out for the metrics (score) is reported on its own
     per_frame = {k: 1000 * timing[f"{k}_s"] / n for k in ("localize", "filter", "data")}
     return {
         "drives": num_drives,
@@ -284,6 +286,7 @@ def bench_drives(
         "drive_timed_frames": n,
         "drive_frames_per_s": round(1000 / sum(per_frame.values()), 2),
         **{f"drive_{k}_ms_per_frame": round(v, 1) for k, v in per_frame.items()},
+        "drive_score_ms_per_frame": round(1000 * timing["score_s"] / n, 1),
         "drive_wall_s_with_compile": round(wall, 1),
         "drive_losses": int(sum(t.lost.sum() for t in tracks)),
         "drive_hypotheses": cfg.hypotheses,

@@ -624,6 +624,7 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
     assert s["mean_log_p_gt"] <= 0.0
     assert set(s["coverage"]) == {f"{m:g}" for m in sequential.MASSES}
     assert s["filter_ms_per_frame"] > 0 and sum(d["frames"] for d in s["per_drive"]) == s["frames"]
+    assert s["score_ms_per_frame"] > 0  # the GT's read-out, timed apart from the filter's
     # Two programs for every frame: the batch of 129-cell windows (the tracking window's frames
     # too: the centre of their volume) and one acquisition window (drive by drive), where each
     # drive spends its first frame; then a frame in the 129-cell window, then the 65-cell one.

@@ -267,6 +267,7 @@ SEQUENTIAL_COLUMNS = (
     ("mean_log_p_gt", "log p(GT) (nats)", "{:.2f}"),
     ("temperature", "T", "{:.3g}"),
     ("filter_ms_per_frame", "filter ms/frame", "{:.1f}"),
+    ("score_ms_per_frame", "GT read-out ms/frame", "{:.1f}"),
     ("localize_ms_per_frame", "localize ms/frame", "{:.1f}"),
 )
 

@@ -58,7 +58,9 @@ Per split (:func:`summarize`), with these definitions:
   posterior's highest-probability region of mass ``m`` over the (yaw, x, y) cells (outside the
   window: not covered); ``ellipse_coverage``: the same for the Gaussian ellipse of the (x, y)
   mean and covariance. ``coverage_90``: the 90 % region.
-* ``filter_ms_per_frame`` (prediction, tile cut, update and read-outs) and
+* ``filter_ms_per_frame`` (prediction, tile cut, update and read-outs: what a vehicle would
+  run), ``score_ms_per_frame`` (the GT's read-out for the metrics: its cell's posterior and
+  the mass above it; not the filter's) and
   ``localize_ms_per_frame`` (both localize steps; per frame of a lockstep batch), after the
   first ``WARMUP_STEPS`` lockstep steps (compilation); ``index_s``: reading the split's
   sequence metadata (every record decoded once); ``seconds``: the split, all included.
@@ -244,7 +246,7 @@ def evaluate_sequential(
         frames = timing["frames"]
         per_frame = {
             f"{k}_ms_per_frame": 1e3 * timing[f"{k}_s"] / frames if frames else None
-            for k in ("filter", "localize", "data")
+            for k in ("filter", "score", "localize", "data")
         }
         summary.update(
             temperature=temperature,

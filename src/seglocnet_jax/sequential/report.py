@@ -122,6 +122,7 @@ SCALARS = (
     "mean_log_p_gt",
     "temperature",
     "filter_ms_per_frame",
+    "score_ms_per_frame",
 )
 
 
