@@ -8,6 +8,7 @@ import json
 import math
 import os
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -37,6 +38,22 @@ def _raster(seed=0, x_min=-123.5, y_max=456.0, h=700, w=600):
 
 
 # --------------------------------------------------------------------------- the tile
+
+
+def test_the_compile_clock_counts_a_new_program_not_a_cached_one():
+    """The lockstep loop times later compilations apart with it: the jax.monitoring event
+    names it listens to must still be the ones this jax sends."""
+    f = jax.jit(lambda x: jnp.sin(x) * 3.0 + 1.0)
+    with tracks.CompileClock() as clock:
+        f(jnp.ones(7)).block_until_ready()
+        first = clock.seconds
+        f(jnp.ones(7)).block_until_ready()  # cached
+        cached = clock.seconds - first
+        f(jnp.ones(9)).block_until_ready()  # a new shape: compiled again
+    assert first > 0 and cached == 0 and clock.seconds > first
+    seen = clock.seconds
+    f(jnp.ones(13)).block_until_ready()  # after exit: no longer listening
+    assert clock.seconds == seen
 
 
 def test_filter_tile_is_the_raster_tile_at_the_window_centre():
@@ -625,6 +642,7 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
     assert set(s["coverage"]) == {f"{m:g}" for m in sequential.MASSES}
     assert s["filter_ms_per_frame"] > 0 and sum(d["frames"] for d in s["per_drive"]) == s["frames"]
     assert s["score_ms_per_frame"] > 0  # the GT's read-out, timed apart from the filter's
+    assert s["compile_ms_per_frame"] >= 0  # later compilations, timed apart
     # Two programs for every frame: the batch of 129-cell windows (the tracking window's frames
     # too: the centre of their volume) and one acquisition window (drive by drive), where each
     # drive spends its first frame; then a frame in the 129-cell window, then the 65-cell one.

@@ -268,6 +268,7 @@ SEQUENTIAL_COLUMNS = (
     ("temperature", "T", "{:.3g}"),
     ("filter_ms_per_frame", "filter ms/frame", "{:.1f}"),
     ("score_ms_per_frame", "GT read-out ms/frame", "{:.1f}"),
+    ("compile_ms_per_frame", "compile ms/frame", "{:.1f}"),
     ("localize_ms_per_frame", "localize ms/frame", "{:.1f}"),
 )
 

@@ -60,7 +60,9 @@ Per split (:func:`summarize`), with these definitions:
   mean and covariance. ``coverage_90``: the 90 % region.
 * ``filter_ms_per_frame`` (prediction, tile cut, update and read-outs: what a vehicle would
   run), ``score_ms_per_frame`` (the GT's read-out for the metrics: its cell's posterior and
-  the mass above it; not the filter's) and
+  the mass above it; not the filter's), ``compile_ms_per_frame`` (the programs compiled after
+  the first steps, e.g. a prediction kernel for a new tap width, :class:`.tracks.CompileClock`;
+  not in the others) and
   ``localize_ms_per_frame`` (both localize steps; per frame of a lockstep batch), after the
   first ``WARMUP_STEPS`` lockstep steps (compilation); ``index_s``: reading the split's
   sequence metadata (every record decoded once); ``seconds``: the split, all included.
@@ -246,7 +248,7 @@ def evaluate_sequential(
         frames = timing["frames"]
         per_frame = {
             f"{k}_ms_per_frame": 1e3 * timing[f"{k}_s"] / frames if frames else None
-            for k in ("filter", "score", "localize", "data")
+            for k in ("filter", "score", "compile", "localize", "data")
         }
         summary.update(
             temperature=temperature,

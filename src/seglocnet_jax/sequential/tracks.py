@@ -30,6 +30,33 @@ LOG_P_FLOOR_P = 1e-12
 LOG_P_FLOOR = float(np.log(LOG_P_FLOOR_P))
 
 
+class CompileClock:
+    """Seconds JAX spends compiling (tracing, lowering to MLIR, XLA's compile) while it is
+    entered, from ``jax.monitoring``'s duration events: the lockstep loop times them apart,
+    since a kernel compiles again for each new static shape (the prediction's tap widths,
+    one program per width: a drive meets new ones long after its first frames)."""
+
+    EVENTS = (
+        "/jax/core/compile/jaxpr_trace_duration",
+        "/jax/core/compile/jaxpr_to_mlir_module_duration",
+        "/jax/core/compile/backend_compile_duration",
+    )
+
+    def __init__(self):
+        self.seconds = 0.0
+
+    def __call__(self, event: str, duration: float, **kwargs) -> None:
+        if event in self.EVENTS:
+            self.seconds += duration
+
+    def __enter__(self) -> CompileClock:
+        jax.monitoring.register_event_duration_secs_listener(self)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        jax.monitoring.unregister_event_duration_listener(self)
+
+
 def tracker_config(eval_cfg: EvalConfig, num_rotations: int) -> tracking.TrackerConfig:
     """The filter's config: ``eval.tracker`` with its null motion-noise fields derived from
     ``eval.odometry`` (:func:`tracking.odometry.tracker_noise` for frames 0.5 s apart: the
@@ -246,8 +273,9 @@ def track_split(
     Returns the tracks and timings (seconds, and the frames they cover:
     all but the first ``WARMUP_STEPS`` lockstep steps, which compile): ``filter_s`` is what a
     vehicle would run (prediction, tile cut, update, windows, read-outs), ``score_s`` the
-    GT's read-out the metrics need (its cell's posterior and the mass above it), left out of
-    ``filter_s``. Fewer drives than
+    GT's read-out the metrics need (its cell's posterior and the mass above it), and
+    ``compile_s`` the compilations of the later steps (:class:`CompileClock`: a new kernel
+    width, a window's first frame), each left out of the others. Fewer drives than
     ``batch_size``: the batch is that many (no padded rows computed for nothing).
 
     With an acquisition window (``cfg.acquire_size``) each drive starts in it
@@ -264,7 +292,14 @@ def track_split(
     pending = collections.deque(drives)
     slots: list[_Slot | None] = [None] * batch_size
     done: dict[str, Track] = {}
-    timing = {"localize_s": 0.0, "filter_s": 0.0, "score_s": 0.0, "data_s": 0.0, "frames": 0}
+    timing = {
+        "localize_s": 0.0,
+        "filter_s": 0.0,
+        "score_s": 0.0,
+        "compile_s": 0.0,
+        "data_s": 0.0,
+        "frames": 0,
+    }
     steps = 0
     bar = tqdm(total=sum(len(d) for d in drives), desc=desc, unit="frame")
 
@@ -300,127 +335,132 @@ def track_split(
         jax.block_until_ready(out)  # dispatch is asynchronous: time the steps, not the filter
         return out
 
-    fill()
-    while any(slots):
-        active = [s for s in range(batch_size) if slots[s] is not None]
-        t0 = time.perf_counter()
-        rows = split.rows([slots[s].drive.records[slots[s].t] for s in active])
-        t1 = time.perf_counter()
-        filter_rows, owners = [], []  # a row per window; owners: (active index, window)
-        for j, (s, row) in enumerate(zip(active, rows, strict=True)):
-            slot = slots[s]
-            for i in range(len(slot.beliefs)):
-                if slot.t:  # the previous estimate's MAP cell saves predict a pass
-                    slot.beliefs[i], moved = tracking.predict(
-                        slot.beliefs[i],
-                        slot.scales[i].apply(slot.odometry[slot.t]),
-                        slot.cfg,
-                        map_cell=slot.map_cells[i],
-                    )
-                    if len(slot.beliefs) > 1:  # the mass that left the window
-                        slot.log_w[i] = slot.log_w[i] + jnp.log(
-                            jnp.maximum(1.0 - moved["dropped"], 1e-30)
-                        )
-                # the tracking window's tile is cfg's: its volume's centre is the window
-                tile_cfg = slot.cfg if slot.wide else cfg
-                tile, centre = filter_tile(
-                    split.rasters[slot.drive.city], slot.beliefs[i], tile_cfg
-                )
-                pose = np.asarray(row["pose"], np.float64)
-                filter_rows.append(
-                    {
-                        **row,
-                        "tile": np.asarray(tile, np.float32),
-                        "tile_center": centre,
-                        "pose_tile": np.array([*(pose[:2] - centre), pose[2]], np.float32),
-                    }
-                )
-                owners.append((j, i))
-        t2 = time.perf_counter()
-        pad = batch_size - len(active)  # repeat the first row: static shapes
-        if single:
-            one = step(params, place(_stack(rows + [rows[0]] * pad)))
-            pose_tile = np.asarray(jax.device_get(one["pose_tile"]), np.float64)
-        else:
-            pose_tile = np.full((batch_size, 3), np.nan)
-        log_lik = volumes(filter_rows, [active[j] for j, _ in owners])
-        t3 = time.perf_counter()
-        for r, (j, i) in enumerate(owners):
-            slot = slots[active[j]]
-            # The evidence only weighs windows against each other: one window needs none (frame
-            # 0's split sets the weights afterwards).
-            weigh = len(slot.beliefs) > 1
-            if slot.cfg.size < cfg.size:  # the tracking window runs the full window's filter
-                slot.beliefs[i], info, window = tracking.update_tracking_window(
-                    slot.beliefs[i], log_lik[r], slot.cfg, cfg
-                )
-                if window is cfg:  # a loss: reset in the full window
-                    slot.cfg, slot.held = cfg, 0
-            else:
-                slot.beliefs[i], info = tracking.update(
-                    slot.beliefs[i], log_lik[r], slot.cfg, evidence=weigh
-                )
-            slot.map_cells[i] = info["estimate"]["map_cell"]
-            slot.infos[i] = info
-            if weigh:
-                slot.log_w[i] = slot.log_w[i] + info["log_evidence"]
-        score_s = 0.0  # the GT's read-out: the evaluation's, not the filter's work
-        for j, s in enumerate(active):
-            slot = slots[s]
-            lost = any(bool(info["lost"]) for info in slot.infos)  # in any window
-            _weigh_windows(slot, cfg, first=slot.t == 0)
-            gt = slot.drive.poses[slot.t]
-            if slot.infos[0] is None:  # frame 0's split: the heaviest piece's own estimate
-                est = jax.device_get(tracking.estimate(slot.belief, slot.cfg))
-            else:
-                est = jax.device_get(slot.infos[0]["estimate"])
-            modes = [
-                np.asarray(_readout(b, jnp.asarray(c), slot.cfg), np.float64)
-                for b, c in zip(slot.beliefs, slot.map_cells, strict=True)
-            ]
-            t_score = time.perf_counter()
-            above, log_p = hypotheses.mixture_readout(
-                slot.beliefs,
-                slot.log_w,
-                [_gt_cell(b, gt, slot.cfg) for b in slot.beliefs],
-                slot.cfg,
-                LOG_P_FLOOR_P,
-            )
-            score_s += time.perf_counter() - t_score
-            for scale, previous, mode in zip(slot.scales, slot.modes, modes, strict=True):
-                if previous is not None:  # each window learns from its own mode track
-                    scale.observe(previous, mode, slot.odometry[slot.t])
-            slot.modes = modes
-            slot.out["filtered"].append(modes[0])
-            slot.out["scale"].append(slot.scales[0].scale)  # the heaviest window's
-            slot.out["single"].append(
-                solver.tile_pose_to_world(pose_tile[j], rows[j]["tile_center"])
-            )
-            slot.out["mean"].append(np.asarray(est["mean_pose"], np.float64))
-            slot.out["cov_xy"].append(np.asarray(est["cov_xy"], np.float64))
-            slot.out["above"].append(float(above))
-            slot.out["log_p_gt"].append(float(log_p))
-            slot.out["lost"].append(lost)
-            slot.out["acquiring"].append(slot.wide)
-            slot.out["narrowed"].append(slot.cfg.size < cfg.size)
-            slot.out["hypotheses"].append(len(slot.beliefs))
-            _next_window(slot, lost, cfg, wide_cfg, split.rasters[slot.drive.city])
-            slot.t += 1
-            if slot.t == len(slot.drive):
-                done[slot.drive.sequence_id] = Track(
-                    slot.drive, **{k: np.asarray(v) for k, v in slot.out.items()}
-                )
-                slots[s] = None
-        t4 = time.perf_counter()
-        steps += 1
-        if steps > WARMUP_STEPS:  # the first lockstep steps compile the programs
-            timing["data_s"] += t1 - t0
-            timing["filter_s"] += (t2 - t1) + (t4 - t3) - score_s
-            timing["score_s"] += score_s
-            timing["localize_s"] += t3 - t2
-            timing["frames"] += len(active)
-        bar.update(len(active))
+    with CompileClock() as clock:
         fill()
+        while any(slots):
+            active = [s for s in range(batch_size) if slots[s] is not None]
+            t0 = time.perf_counter()
+            rows = split.rows([slots[s].drive.records[slots[s].t] for s in active])
+            t1, c1 = time.perf_counter(), clock.seconds
+            filter_rows, owners = [], []  # a row per window; owners: (active index, window)
+            for j, (s, row) in enumerate(zip(active, rows, strict=True)):
+                slot = slots[s]
+                for i in range(len(slot.beliefs)):
+                    if slot.t:  # the previous estimate's MAP cell saves predict a pass
+                        slot.beliefs[i], moved = tracking.predict(
+                            slot.beliefs[i],
+                            slot.scales[i].apply(slot.odometry[slot.t]),
+                            slot.cfg,
+                            map_cell=slot.map_cells[i],
+                        )
+                        if len(slot.beliefs) > 1:  # the mass that left the window
+                            slot.log_w[i] = slot.log_w[i] + jnp.log(
+                                jnp.maximum(1.0 - moved["dropped"], 1e-30)
+                            )
+                    # the tracking window's tile is cfg's: its volume's centre is the window
+                    tile_cfg = slot.cfg if slot.wide else cfg
+                    tile, centre = filter_tile(
+                        split.rasters[slot.drive.city], slot.beliefs[i], tile_cfg
+                    )
+                    pose = np.asarray(row["pose"], np.float64)
+                    filter_rows.append(
+                        {
+                            **row,
+                            "tile": np.asarray(tile, np.float32),
+                            "tile_center": centre,
+                            "pose_tile": np.array([*(pose[:2] - centre), pose[2]], np.float32),
+                        }
+                    )
+                    owners.append((j, i))
+            t2, c2 = time.perf_counter(), clock.seconds
+            pad = batch_size - len(active)  # repeat the first row: static shapes
+            if single:
+                one = step(params, place(_stack(rows + [rows[0]] * pad)))
+                pose_tile = np.asarray(jax.device_get(one["pose_tile"]), np.float64)
+            else:
+                pose_tile = np.full((batch_size, 3), np.nan)
+            log_lik = volumes(filter_rows, [active[j] for j, _ in owners])
+            t3, c3 = time.perf_counter(), clock.seconds
+            for r, (j, i) in enumerate(owners):
+                slot = slots[active[j]]
+                # The evidence only weighs windows against each other: one window needs none (frame
+                # 0's split sets the weights afterwards).
+                weigh = len(slot.beliefs) > 1
+                if slot.cfg.size < cfg.size:  # the tracking window runs the full window's filter
+                    slot.beliefs[i], info, window = tracking.update_tracking_window(
+                        slot.beliefs[i], log_lik[r], slot.cfg, cfg
+                    )
+                    if window is cfg:  # a loss: reset in the full window
+                        slot.cfg, slot.held = cfg, 0
+                else:
+                    slot.beliefs[i], info = tracking.update(
+                        slot.beliefs[i], log_lik[r], slot.cfg, evidence=weigh
+                    )
+                slot.map_cells[i] = info["estimate"]["map_cell"]
+                slot.infos[i] = info
+                if weigh:
+                    slot.log_w[i] = slot.log_w[i] + info["log_evidence"]
+            score_s = score_c = 0.0  # the GT's read-out: the evaluation's, not the filter's
+            for j, s in enumerate(active):
+                slot = slots[s]
+                lost = any(bool(info["lost"]) for info in slot.infos)  # in any window
+                _weigh_windows(slot, cfg, first=slot.t == 0)
+                gt = slot.drive.poses[slot.t]
+                if slot.infos[0] is None:  # frame 0's split: the heaviest piece's own estimate
+                    est = jax.device_get(tracking.estimate(slot.belief, slot.cfg))
+                else:
+                    est = jax.device_get(slot.infos[0]["estimate"])
+                modes = [
+                    np.asarray(_readout(b, jnp.asarray(c), slot.cfg), np.float64)
+                    for b, c in zip(slot.beliefs, slot.map_cells, strict=True)
+                ]
+                t_score, c_score = time.perf_counter(), clock.seconds
+                above, log_p = hypotheses.mixture_readout(
+                    slot.beliefs,
+                    slot.log_w,
+                    [_gt_cell(b, gt, slot.cfg) for b in slot.beliefs],
+                    slot.cfg,
+                    LOG_P_FLOOR_P,
+                )
+                score_s += time.perf_counter() - t_score
+                score_c += clock.seconds - c_score
+                for scale, previous, mode in zip(slot.scales, slot.modes, modes, strict=True):
+                    if previous is not None:  # each window learns from its own mode track
+                        scale.observe(previous, mode, slot.odometry[slot.t])
+                slot.modes = modes
+                slot.out["filtered"].append(modes[0])
+                slot.out["scale"].append(slot.scales[0].scale)  # the heaviest window's
+                slot.out["single"].append(
+                    solver.tile_pose_to_world(pose_tile[j], rows[j]["tile_center"])
+                )
+                slot.out["mean"].append(np.asarray(est["mean_pose"], np.float64))
+                slot.out["cov_xy"].append(np.asarray(est["cov_xy"], np.float64))
+                slot.out["above"].append(float(above))
+                slot.out["log_p_gt"].append(float(log_p))
+                slot.out["lost"].append(lost)
+                slot.out["acquiring"].append(slot.wide)
+                slot.out["narrowed"].append(slot.cfg.size < cfg.size)
+                slot.out["hypotheses"].append(len(slot.beliefs))
+                _next_window(slot, lost, cfg, wide_cfg, split.rasters[slot.drive.city])
+                slot.t += 1
+                if slot.t == len(slot.drive):
+                    done[slot.drive.sequence_id] = Track(
+                        slot.drive, **{k: np.asarray(v) for k, v in slot.out.items()}
+                    )
+                    slots[s] = None
+            t4, c4 = time.perf_counter(), clock.seconds
+            steps += 1
+            if steps > WARMUP_STEPS:  # the first lockstep steps compile the programs
+                # later compilations (a new kernel width...) apart: score_s holds score_c
+                filter_c = (c2 - c1) + (c4 - c3)
+                timing["data_s"] += t1 - t0
+                timing["filter_s"] += (t2 - t1) + (t4 - t3) - score_s - (filter_c - score_c)
+                timing["score_s"] += score_s - score_c
+                timing["localize_s"] += t3 - t2 - (c3 - c2)
+                timing["compile_s"] += filter_c + (c3 - c2)
+                timing["frames"] += len(active)
+            bar.update(len(active))
+            fill()
     bar.close()
     return [done[d.sequence_id] for d in drives], timing
 
