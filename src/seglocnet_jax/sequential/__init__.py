@@ -67,8 +67,9 @@ Per split (:func:`summarize`), with these definitions:
   first ``WARMUP_STEPS`` lockstep steps (compilation); ``index_s``: reading the split's
   sequence metadata (every record decoded once); ``seconds``: the split, all included.
 
-Modules: :mod:`.temperature` (the streamed fit), :mod:`.tracks` (drives of a split, the
-filter's config and the lockstep loop), :mod:`.report` (numbers, arrays, figures);
+Modules: :mod:`.drives` (the drives of a split), :mod:`.temperature` (the streamed fit),
+:mod:`.tracks` (the filter's config, its windows and the lockstep loop), :mod:`.report`
+(numbers, arrays, figures);
 :func:`evaluate_sequential` ties them for the apps.
 """
 
@@ -79,6 +80,7 @@ import time
 
 from seglocnet_jax import viz
 from seglocnet_jax.evaluation import EvalConfig, LocalizeStep
+from seglocnet_jax.sequential.drives import Drive, DriveSplit, drive_seed
 from seglocnet_jax.sequential.report import (
     CONVERGED_M,
     MASSES,
@@ -98,10 +100,7 @@ from seglocnet_jax.sequential.temperature import (
     gt_cells,
 )
 from seglocnet_jax.sequential.tracks import (
-    Drive,
-    DriveSplit,
     Track,
-    drive_seed,
     filter_tile,
     start_belief,
     track_split,

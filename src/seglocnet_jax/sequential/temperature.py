@@ -116,7 +116,7 @@ def choose_filter_temperature(
     place,
 ) -> tuple[float, list[dict]]:
     """The filter's temperature, chosen on validation drives: ``drives`` (of the
-    :class:`~seglocnet_jax.sequential.tracks.DriveSplit` ``split``) are tracked at
+    :class:`~seglocnet_jax.sequential.drives.DriveSplit` ``split``) are tracked at
     ``base * s`` for each scale ``s`` (the volume step only, no single-frame pass) and the
     ``T`` with the best mean log posterior of the GT cell (the filter's log score, clamped at
     ``tracks.LOG_P_FLOOR``: a proper score, so it rewards a posterior that is both sharp and
