@@ -178,6 +178,30 @@ def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
     assert tile_centres and len(tile_centres) == len(drive)
 
 
+def _peaks_step(peaks_of, sizes=None):
+    """A localize step whose score volume holds, per row, the peaks ``peaks_of(batch, i)``
+    (``(tile pose, score)`` each; one outside the volume is left out), its size the tile's
+    (``sizes``: the window sizes it was asked for)."""
+
+    def step(params, batch, figures=False, volume=False):
+        b = len(batch["pose"])
+        out = {"pose_tile": jnp.zeros((b, 3))}
+        if volume:
+            n = batch["tile"].shape[-1] - geometry.BEV_SIZE + 1
+            if sizes is not None:
+                sizes.append(n)
+            vol = np.zeros((b, K, n, n), np.float32)
+            for i in range(b):
+                for p, score in peaks_of(batch, i):
+                    cell = np.round(geometry.pose_to_cell(p, K, size=n)).astype(int)
+                    if (0 <= cell[1:]).all() and (cell[1:] < n).all():
+                        vol[i, cell[0] % K, cell[1], cell[2]] = score
+            out["volume"] = jnp.asarray(vol)
+        return out
+
+    return step
+
+
 @pytest.mark.parametrize(("acquire_size", "hypotheses"), [(257, 1), (0, 1), (0, 3)])
 def test_a_far_first_peak_loses_the_truth_with_one_window_only(acquire_size, hypotheses):
     """Frame 0's likelihood peaks 55 m from the truth, at the far side of the prior box, and
@@ -204,26 +228,15 @@ def test_a_far_first_peak_loses_the_truth_with_one_window_only(acquire_size, hyp
     )
     cfg = sequential.tracker_config(ev, K)
 
-    def step(params, batch, figures=False, volume=False):
-        b = len(batch["pose"])
-        out = {"pose_tile": jnp.zeros((b, 3))}
-        if volume:
-            n = batch["tile"].shape[-1] - geometry.BEV_SIZE + 1
-            vol = np.zeros((b, K, n, n), np.float32)
-            for i in range(b):
-                pose_tile = np.asarray(batch["pose_tile"][i], np.float64)
-                peaks = [(pose_tile, 20.0)]
-                if int(batch["frame_index"][i]) == 0:
-                    off = wrong - np.asarray(batch["tile_center"][i])
-                    peaks.append((np.array([*off, pose_tile[2]]), 25.0))
-                for p, score in peaks:
-                    cell = np.round(geometry.pose_to_cell(p, K, size=n)).astype(int)
-                    if (0 <= cell[1:]).all() and (cell[1:] < n).all():
-                        vol[i, cell[0] % K, cell[1], cell[2]] = score
-            out["volume"] = jnp.asarray(vol)
+    def peaks(batch, i):
+        pose_tile = np.asarray(batch["pose_tile"][i], np.float64)
+        out = [(pose_tile, 20.0)]
+        if int(batch["frame_index"][i]) == 0:
+            off = wrong - np.asarray(batch["tile_center"][i])
+            out.append((np.array([*off, pose_tile[2]]), 25.0))
         return out
 
-    track = _track_one(step, _FakeSplit(_raster(2), drive), drive, cfg, odometry)
+    track = _track_one(_peaks_step(peaks), _FakeSplit(_raster(2), drive), drive, cfg, odometry)
     err = np.hypot(*(track.filtered[:, :2] - drive.poses[:, :2]).T)
     assert err[0] > 50.0  # the first frame's mode is the far peak either way
     if acquire_size:
@@ -249,25 +262,14 @@ def test_each_window_of_the_bank_learns_the_odometry_scale_of_its_own_track():
     wrong0 = drive.priors[0] + [15.0, -25.0]  # inside the prior box
     assert np.hypot(*(wrong0 - drive.poses[0, :2])) > 45.0
 
-    def step(params, batch, figures=False, volume=False):
-        b = len(batch["pose"])
-        out = {"pose_tile": jnp.zeros((b, 3))}
-        if volume:
-            n = batch["tile"].shape[-1] - geometry.BEV_SIZE + 1
-            vol = np.zeros((b, K, n, n), np.float32)
-            for i in range(b):
-                t = int(batch["frame_index"][i])
-                truth = np.asarray(batch["pose_tile"][i], np.float64)
-                peaks = [(truth, 20.0)]
-                if t < 10:
-                    wrong = wrong0 + 0.9 * (drive.poses[t, :2] - drive.poses[0, :2])
-                    off = wrong - np.asarray(batch["tile_center"][i])
-                    peaks.append((np.array([*off, truth[2]]), 40.0))
-                for p, score in peaks:
-                    cell = np.round(geometry.pose_to_cell(p, K, size=n)).astype(int)
-                    if (0 <= cell[1:]).all() and (cell[1:] < n).all():
-                        vol[i, cell[0] % K, cell[1], cell[2]] = score
-            out["volume"] = jnp.asarray(vol)
+    def peaks(batch, i):
+        t = int(batch["frame_index"][i])
+        truth = np.asarray(batch["pose_tile"][i], np.float64)
+        out = [(truth, 20.0)]
+        if t < 10:
+            wrong = wrong0 + 0.9 * (drive.poses[t, :2] - drive.poses[0, :2])
+            off = wrong - np.asarray(batch["tile_center"][i])
+            out.append((np.array([*off, truth[2]]), 40.0))
         return out
 
     section = evaluation.TrackerSection(
@@ -275,7 +277,8 @@ def test_each_window_of_the_bank_learns_the_odometry_scale_of_its_own_track():
     )
     ev = evaluation.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
     cfg = sequential.tracker_config(ev, K)
-    track = _track_one(step, _FakeSplit(_raster(5), drive), drive, cfg, _EXACT_ODOMETRY)
+    split = _FakeSplit(_raster(5), drive)
+    track = _track_one(_peaks_step(peaks), split, drive, cfg, _EXACT_ODOMETRY)
     err = np.hypot(*(track.filtered[:, :2] - drive.poses[:, :2]).T)
     assert (err[:10] > 30.0).all(), err  # the look-alike's window leads ...
     assert (track.hypotheses == 2).all()  # (nothing pruned: both windows tracked throughout)
@@ -316,26 +319,8 @@ def test_a_loss_in_either_window_restarts_the_acquisition_window_on_the_box():
 
 
 def _peak_step(peak_of, sizes=None):
-    """A localize step whose score volume is one peak per row at ``peak_of(batch, i)`` (a tile
-    pose; None: flat), its size the tile's (``sizes``: the window sizes it was asked for)."""
-
-    def step(params, batch, figures=False, volume=False):
-        b = len(batch["pose"])
-        out = {"pose_tile": jnp.zeros((b, 3))}
-        if volume:
-            n = batch["tile"].shape[-1] - geometry.BEV_SIZE + 1
-            if sizes is not None:
-                sizes.append(n)
-            vol = np.zeros((b, K, n, n), np.float32)
-            for i in range(b):
-                p = peak_of(batch, i)
-                cell = np.round(geometry.pose_to_cell(p, K, size=n)).astype(int)
-                if (0 <= cell[1:]).all() and (cell[1:] < n).all():
-                    vol[i, cell[0] % K, cell[1], cell[2]] = 20.0
-            out["volume"] = jnp.asarray(vol)
-        return out
-
-    return step
+    """:func:`_peaks_step` with one peak of score 20 per row, at ``peak_of(batch, i)``."""
+    return _peaks_step(lambda batch, i: [(peak_of(batch, i), 20.0)], sizes)
 
 
 _EXACT_ODOMETRY = tr.OdometryConfig(
