@@ -290,6 +290,63 @@ def test_each_window_of_the_bank_learns_the_odometry_scale_of_its_own_track():
     assert np.abs(track.scale[lead:] - 1.0).max() < 0.004, track.scale
 
 
+@pytest.mark.parametrize("off_road", [0.0, 10.0])
+def test_the_on_road_prior_drops_a_look_alike_off_the_road(off_road):
+    """Every frame peaks at the truth (20) and, more strongly (25), at a look-alike 48 m away
+    (21 m to the side of the truth's line) that moves with the car; the map's road is an 8 m
+    band along the truth's track. Without the on-road prior the look-alike's window leads the
+    bank throughout; with it (10 nats a frame off the road) the truth's window leads from the
+    first frame."""
+    drive = _straight_drive(n=12)
+    wrong0 = drive.priors[0] + [15.0, -25.0]  # inside the prior box
+    heading = np.array([math.cos(drive.poses[0, 2]), math.sin(drive.poses[0, 2])])
+    side = wrong0 - drive.poses[0, :2]
+    assert abs(side[0] * heading[1] - side[1] * heading[0]) > 20.0  # far off the band
+
+    grid = geometry.RasterGrid(x_min=-100.0, y_max=200.0, height=800, width=800)
+    x = grid.x_min + (np.arange(grid.width) + 0.5) * grid.resolution
+    y = grid.y_max - (np.arange(grid.height) + 0.5) * grid.resolution
+    dx, dy = x[None, :] - drive.poses[0, 0], y[:, None] - drive.poses[0, 1]
+    mask = np.zeros((2, grid.height, grid.width), np.uint8)
+    mask[0] = np.abs(dx * heading[1] - dy * heading[0]) <= 4.0  # the road: the truth's line
+    raster = maps.CityRaster(mask, grid, ("road", "building"), "town")
+
+    def peaks(batch, i):
+        t = int(batch["frame_index"][i])
+        truth = np.asarray(batch["pose_tile"][i], np.float64)
+        wrong = wrong0 + (drive.poses[t, :2] - drive.poses[0, :2])
+        off = wrong - np.asarray(batch["tile_center"][i])
+        return [(truth, 20.0), (np.array([*off, truth[2]]), 25.0)]
+
+    section = evaluation.TrackerSection(
+        hypotheses=2,
+        hypothesis_prune=1000.0,
+        lost_log_odds=0.0,
+        lost_peak_mass=0.0,
+        off_road=off_road,
+    )
+    ev = evaluation.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
+    cfg = sequential.tracker_config(ev, K)
+    assert cfg.off_road == off_road
+    split = _FakeSplit(raster, drive)
+    track = _track_one(_peaks_step(peaks), split, drive, cfg, _EXACT_ODOMETRY)
+    err = np.hypot(*(track.filtered[:, :2] - drive.poses[:, :2]).T)
+    if off_road:
+        assert err.max() < 1.0, err
+    else:
+        assert (err > 45.0).all(), err
+    assert (track.hypotheses == 2).all()  # both windows tracked either way
+
+
+def test_the_on_road_prior_needs_a_road_channel():
+    raster = _raster()
+    raster = maps.CityRaster(raster.mask[1:], raster.grid, ("building",), "town")
+    cfg = tr.TrackerConfig(num_rotations=K, off_road=3.0)
+    with pytest.raises(ValueError, match="off_road = 3.0 needs a 'road' channel.*'town'"):
+        tracks.road_channels({"town": raster}, cfg)
+    assert tracks.road_channels({"town": raster}, tr.TrackerConfig(num_rotations=K)) is None
+
+
 def test_a_loss_in_either_window_restarts_the_acquisition_window_on_the_box():
     raster = _raster()
     cfg = tr.TrackerConfig(num_rotations=K, acquire_size=257)
@@ -589,9 +646,11 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
     # With the acquisition window (off by default; one window, not the default bank) and the
     # tracking window (on by default), each left after one frame: the app's path through all
     # three windows (acquisition -> 129 cells -> 65 cells) within the short drives.
-    tracker = {"acquire_size": 257, "hypotheses": 1, "acquire_frames": 1}
+    # With the on-road prior (off by default): the acquisition window's larger tile too.
+    tracker = {"acquire_size": 257, "hypotheses": 1, "acquire_frames": 1, "off_road": 5.0}
     cfg = build_experiment(_tree(data_root, bev_source="gt", tracker=tracker))
     assert cfg.eval.tracker.acquire_size == 257 and cfg.eval.tracker.track_size == 65
+    assert cfg.eval.tracker.off_road == 5.0
     key = (cfg.model, cfg.solver, "gt", "volume")
     before = evaluation.TRACE_COUNTS.get(key, 0)
     workdir = str(tmp_path / "gt")
@@ -698,6 +757,7 @@ def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, cap
         ({"mode": "video"}, "eval.mode"),
         ({"temperature": -1.0}, "eval.temperature"),
         ({"max_drives": 0}, "eval.max_drives"),
+        ({"tracker": {"off_road": -2.0}}, "off_road must be >= 0"),
         ({"tracker": {"floor": 1.0}}, "eval.tracker"),
         ({"tracker": {"num_rotations": 8}}, "eval.tracker.num_rotations"),
         ({"odometry": {"yaw_sigma": -1.0}}, "odometry.yaw_sigma"),
@@ -712,6 +772,16 @@ def test_sequential_config_errors_name_the_key(data_root, override, key):
         build_experiment(_tree(data_root, mode="single", **override))
     if "temperature_split" in override or "temperature_drives" in override:
         build_experiment(_tree(data_root, temperature=5.0, **override))
+
+
+def test_the_on_road_prior_without_a_road_channel_is_a_config_error(data_root):
+    tree = _tree(data_root, tracker={"off_road": 3.0})
+    tree["map"]["channels"] = ["building"]
+    want = r"eval.tracker.off_road=3.0 .*map.channels=\['building'\]"
+    with pytest.raises(ConfigError, match=want):
+        build_experiment(tree)
+    tree["eval"]["tracker"]["off_road"] = 0.0  # off: the map's channels are not read
+    build_experiment(tree)
 
 
 # --------------------------------------------------------------------------- real data

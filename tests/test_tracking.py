@@ -153,6 +153,30 @@ def test_config_rejects_bad_values():
     assert tr.TrackerConfig().tracking_window() is None  # off in the filter's own default
     wide = tr.TrackerConfig(acquire_size=257, track_size=65).acquisition()
     assert (wide.size, wide.track_size, wide.reference_size) == (257, 0, 0)
+    for bad in (-1.0, math.inf):
+        with pytest.raises(ValueError, match="off_road"):
+            tr.TrackerConfig(off_road=bad)
+
+
+@pytest.mark.parametrize("bev_size", [8, 128])
+def test_road_log_prior_is_zero_where_the_cells_ego_point_touches_the_road(bev_size):
+    """Checked against the cell's tile-frame pose (geometry.cell_to_pose): its ego point is a
+    pixel corner of the tile, on the road when one of the 4 pixels around it is."""
+    n = 33
+    tile = n - 1 + bev_size
+    road = (np.random.default_rng(bev_size).random((2, tile, tile)) > 0.8).astype(np.float32)
+    prior = np.asarray(tr.road_log_prior(road, 7.5, bev_size=bev_size))
+    assert prior.shape == (2, n, n)
+    h, w = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    cells = np.stack([np.zeros_like(h), h, w], -1)
+    pose = g.cell_to_pose(cells, K, size=n, bev_size=bev_size)
+    row = np.round(tile / 2 - pose[..., 1] / g.RESOLUTION).astype(int)
+    col = np.round(tile / 2 + pose[..., 0] / g.RESOLUTION).astype(int)
+    for b in range(2):
+        px = road[b]
+        on = (px[row - 1, col - 1] + px[row - 1, col] + px[row, col - 1] + px[row, col]) > 0
+        np.testing.assert_array_equal(prior[b], np.where(on, 0.0, -7.5))
+    assert 0.2 < (prior == 0).mean() < 0.9  # both kinds of cell are there
 
 
 # --------------------------------------------------------------------------- prediction

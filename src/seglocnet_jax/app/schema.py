@@ -272,6 +272,11 @@ def _check_cross(cfg: ExperimentConfig) -> None:
             sequential.tracker_config(cfg.eval, cfg.solver.num_rotations)
         except (TypeError, ValueError) as err:
             raise ConfigError(f"eval.tracker / eval.odometry: {err}") from err
+        if cfg.eval.tracker.off_road > 0 and "road" not in cfg.map.channels:
+            raise ConfigError(
+                f"eval.tracker.off_road={cfg.eval.tracker.off_road} reads the map's road channel, "
+                f"but map.channels={list(cfg.map.channels)} has none; set eval.tracker.off_road=0"
+            )
     if cfg.eval.bev_source == "gt" and cfg.model.variant == "nm":
         raise ConfigError(
             "eval.bev_source=gt localizes the GT labels against the binary map: it has no neural "

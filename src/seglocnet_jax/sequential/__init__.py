@@ -12,6 +12,7 @@ Bayes filter over the solver's pose grid (:mod:`seglocnet_jax.tracking`), frame 
               tile   = the map raster cut around the belief's window centre (never the truth)
               volume = the one localize step (evaluation.make_localize_step, volume variant)
               belief = update(belief, log_softmax(volume / T))   # loss detection + re-widening
+              (eval.tracker.off_road > 0: plus the on-road prior of the tile's road channel)
               (acquisition window: narrowed to the 129-cell window once the box around the
               mode holds the belief; a detected loss goes back to it. Tracking window,
               eval.tracker.track_size: one window left and locked on, the filter narrows to

@@ -118,10 +118,31 @@ def _gt_cell(belief: tracking.Belief, gt_pose, cfg: tracking.TrackerConfig) -> n
 
 
 @jax.jit
-def _log_likelihood(volume, temperature):
+def _log_likelihood(volume, temperature, road=None, off_road=0.0):
     """``volume / T``: ``log_softmax(volume / T)`` up to a constant per frame, which the
-    update drops anyway (it subtracts the maximum)."""
-    return volume / temperature
+    update drops anyway (it subtracts the maximum); with ``road`` (``(..., T, T)``, the tiles'
+    road channels) plus the on-road prior (:func:`tracking.road_log_prior`, ``-off_road``
+    nats off the road)."""
+    if road is None:
+        return volume / temperature
+    return volume / temperature + tracking.road_log_prior(road, off_road)[..., None, :, :]
+
+
+def road_channels(rasters: dict, cfg: tracking.TrackerConfig) -> dict[str, int] | None:
+    """The road channel's index in each city's raster when the filter reads it
+    (``cfg.off_road`` > 0; None otherwise); a raster without one is an error naming it."""
+    if cfg.off_road <= 0:
+        return None
+    out = {}
+    for city, raster in rasters.items():
+        if "road" not in raster.channels:
+            raise ValueError(
+                f"eval.tracker.off_road = {cfg.off_road} needs a 'road' channel in the map, but "
+                f"the {city!r} raster has channels {list(raster.channels)} (map.channels); set "
+                "eval.tracker.off_road=0 for maps without roads"
+            )
+        out[city] = raster.channels.index("road")
+    return out
 
 
 @dataclasses.dataclass
@@ -207,6 +228,7 @@ def track_split(
     window centre, and the window's likelihood is the volume's centre."""
     batch_size = max(1, min(batch_size, len(drives)))
     wide_cfg = cfg.acquisition()
+    road_of = road_channels(split.rasters, cfg)  # None: no on-road prior
     pending = collections.deque(drives)
     slots: list[_Slot | None] = [None] * batch_size
     done: dict[str, Track] = {}
@@ -233,23 +255,34 @@ def track_split(
                 wide = wide_cfg is not None
                 slots[s] = _Slot(d, belief, np.asarray(odo), wide_cfg if wide else cfg, wide)
 
+    def road(rows, active):
+        """The rows' road channels ``(B, T, T)`` (None without the on-road prior)."""
+        if road_of is None:
+            return None
+        cities = [slots[s].drive.city for s in active]
+        return np.stack([r["tile"][road_of[c]] for r, c in zip(rows, cities, strict=True)])
+
     def volumes(filter_rows, active):
         """The log-likelihood volume of each row (``active``: its slot): the ``cfg`` tiles in
         padded batches of ``batch_size`` (a tracking window's too: its likelihood is the
-        volume's centre), each acquiring one on its own."""
+        volume's centre), each acquiring one on its own; with ``cfg.off_road``, plus the
+        on-road prior of each row's tile."""
         out = {}
         narrow = [j for j, s in enumerate(active) if not slots[s].wide]
         for start in range(0, len(narrow), batch_size):
             chunk = narrow[start : start + batch_size]
+            chunk_slots = [active[j] for j in chunk]
             rows = [filter_rows[j] for j in chunk]
             rows += [rows[0]] * (batch_size - len(rows))  # static shapes
+            chunk_slots += [chunk_slots[0]] * (batch_size - len(chunk_slots))
             vol = step(params, place(_stack(rows)), volume=True)["volume"]
-            lik = _log_likelihood(vol, temperature)  # (B, K, N, N)
-            out.update({j: lik[i] for i, j in enumerate(chunk)})
+            lik = _log_likelihood(vol, temperature, road(rows, chunk_slots), cfg.off_road)
+            out.update({j: lik[i] for i, j in enumerate(chunk)})  # (K, N, N) each
         for j, s in enumerate(active):
             if slots[s].wide:
                 vol = step(params, place(_stack([filter_rows[j]])), volume=True)["volume"]
-                out[j] = _log_likelihood(vol, temperature)[0]
+                road_j = road([filter_rows[j]], [s])
+                out[j] = _log_likelihood(vol, temperature, road_j, cfg.off_road)[0]
         jax.block_until_ready(out)  # dispatch is asynchronous: time the steps, not the filter
         return out
 

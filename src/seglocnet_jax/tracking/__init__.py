@@ -53,6 +53,10 @@ One frame of a drive::
   window's), each tracked as a filter of its own; the
   windows are weighted by their evidence (a mixture, exact up to the cells that leave a window)
   and pruned / merged; the estimate is the heaviest window's mode.
+* on-road prior (``off_road`` nats, 0: off): :func:`road_log_prior` of the window's map tile
+  is added to every frame's log-likelihood, ``-off_road`` at each cell whose ego point is off
+  the map's road channel: a vehicle drives on the road, so a window whose mass sits off it
+  loses that much evidence per frame against one on it.
 * odometry (:mod:`~seglocnet_jax.tracking.odometry`): the motion between frames as wheel
   odometry + a MEMS gyro measure it (:func:`simulate`), dead reckoning (:func:`compose`) and
   the filter's motion noise that covers it (:func:`tracker_noise`).
@@ -94,6 +98,7 @@ from seglocnet_jax.tracking.posterior import (
     fit_temperature,
     in_credible_region,
     reset,
+    road_log_prior,
     update,
     update_tracking_window,
 )
@@ -113,6 +118,7 @@ __all__ = [
     "update",
     "reset",
     "crop_likelihood",
+    "road_log_prior",
     "update_tracking_window",
     "estimate",
     "in_credible_region",

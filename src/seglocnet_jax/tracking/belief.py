@@ -4,6 +4,7 @@ solver's pose cells, its construction and the cell <-> world mapping (see the pa
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import NamedTuple
 
 import jax
@@ -81,6 +82,12 @@ class TrackerConfig:
         odometry by it); 0: the raw odometry.
       hypothesis_prune: nats; a window whose log weight falls this far below the best one's
         is dropped.
+      off_road: nats; the *on-road prior*: every frame's log-likelihood is lowered by this at
+        each cell whose ego point is off the map's road channel (none of the 4 raster pixels
+        around the cell's corner is road; :func:`~seglocnet_jax.tracking.road_log_prior`), so
+        a window whose mass sits off the drivable area loses this much evidence per frame
+        against one on it. A vehicle drives on the road: the HD map's drivable area holds it,
+        an SD map's buffered roads nearly. 0: off (the map's road channel is then not read).
     """
 
     num_rotations: int = geometry.NUM_ROTATIONS
@@ -108,6 +115,7 @@ class TrackerConfig:
     scale_prior_m: float = 200.0
     track_size: int = 0
     reference_size: int = 0
+    off_road: float = 0.0
 
     def __post_init__(self):
         if self.num_rotations < 1:
@@ -157,6 +165,8 @@ class TrackerConfig:
             raise ValueError(f"hypotheses must be >= 1, got {self.hypotheses}")
         if self.scale_prior_m < 0:
             raise ValueError(f"scale_prior_m must be >= 0, got {self.scale_prior_m}")
+        if not 0.0 <= self.off_road < math.inf:
+            raise ValueError(f"off_road must be >= 0 and finite (nats), got {self.off_road}")
         if self.hypothesis_prune <= 0:
             raise ValueError(f"hypothesis_prune must be > 0, got {self.hypothesis_prune}")
         if self.hypotheses > 1 and (self.outlier > 0 or self.acquire_size):

@@ -22,6 +22,20 @@ from seglocnet_jax.tracking.belief import (
 from seglocnet_jax.tracking.motion import _map_cell
 
 
+@functools.partial(jax.jit, static_argnames="bev_size")
+def road_log_prior(road, off_road, bev_size: int = geometry.BEV_SIZE):
+    """The on-road prior of windows (``TrackerConfig.off_road``): ``(..., T, T)`` road channels
+    of their map tiles -> ``(..., N, N)``, ``N = T - bev_size + 1``: 0 at each cell whose ego
+    point is on the road, ``-off_road`` elsewhere. Cell ``(h, w)``'s ego point is the tile's
+    pixel corner ``(h + bev_size / 2, w + bev_size / 2)`` (:func:`geometry.cell_to_pose`); it is
+    on the road when any of the 4 pixels around that corner is."""
+    half = bev_size // 2
+    n = road.shape[-1] - bev_size + 1
+    px = road[..., half - 1 : half + n, half - 1 : half + n] > 0  # (..., N + 1, N + 1)
+    on = px[..., :-1, :-1] | px[..., 1:, :-1] | px[..., :-1, 1:] | px[..., 1:, 1:]
+    return jnp.where(on, 0.0, -jnp.asarray(off_road, jnp.float32))
+
+
 def _marginal_xy(prob):
     """``sum_k prob[k]`` as ``(N, N)``: a matrix-vector product (XLA's CPU reduction over the
     major axis is ~30x slower)."""
