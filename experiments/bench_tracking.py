@@ -260,7 +260,7 @@ def bench_drives(
         eval_cfg = dataclasses.replace(
             eval_cfg, tracker=dataclasses.replace(eval_cfg.tracker, hypotheses=hypotheses)
         )
-    cfg = sequential.tracker_config(eval_cfg, geometry.NUM_ROTATIONS)
+    cfg = sequential.tracker_config(eval_cfg, geometry.NUM_ROTATIONS, raster.channels)
     t0 = time.perf_counter()
     tracks, timing = sequential.track_split(
         step,

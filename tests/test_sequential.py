@@ -142,7 +142,7 @@ def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
     )
     ev = evaluation.EvalConfig(
         odometry=odometry,
-        tracker=evaluation.TrackerSection(lost_peak_mass=0.0, lost_entropy=1.0),
+        tracker=evaluation.TrackerSection(lost_peak_mass=0.0, lost_entropy=1.0, off_road=0.0),
     )
     cfg = sequential.tracker_config(ev, K)
     tile_centres = []
@@ -224,6 +224,7 @@ def test_a_far_first_peak_loses_the_truth_with_one_window_only(acquire_size, hyp
             lost_entropy=1.0,
             acquire_size=acquire_size,
             hypotheses=hypotheses,
+            off_road=0.0,
         ),
     )
     cfg = sequential.tracker_config(ev, K)
@@ -273,7 +274,7 @@ def test_each_window_of_the_bank_learns_the_odometry_scale_of_its_own_track():
         return out
 
     section = evaluation.TrackerSection(
-        hypotheses=2, hypothesis_prune=1000.0, lost_log_odds=0.0, lost_peak_mass=0.0
+        hypotheses=2, hypothesis_prune=1000.0, lost_log_odds=0.0, lost_peak_mass=0.0, off_road=0.0
     )
     ev = evaluation.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
     cfg = sequential.tracker_config(ev, K)
@@ -338,6 +339,17 @@ def test_the_on_road_prior_drops_a_look_alike_off_the_road(off_road):
     assert (track.hypotheses == 2).all()  # both windows tracked either way
 
 
+def test_a_null_on_road_prior_is_derived_from_the_maps_channels():
+    ev = evaluation.EvalConfig()  # the app's default: null
+    assert ev.tracker.off_road is None
+    assert sequential.tracker_config(ev, K, ("road", "building")).off_road == tracks.OFF_ROAD_NATS
+    assert sequential.tracker_config(ev, K, ("building",)).off_road == 0.0  # no road to keep to
+    with pytest.raises(ValueError, match="eval.tracker.off_road is null"):
+        sequential.tracker_config(ev, K)
+    given = evaluation.EvalConfig(tracker=evaluation.TrackerSection(off_road=2.5))
+    assert sequential.tracker_config(given, K, ("building",)).off_road == 2.5  # checked later
+
+
 def test_the_on_road_prior_needs_a_road_channel():
     raster = _raster()
     raster = maps.CityRaster(raster.mask[1:], raster.grid, ("building",), "town")
@@ -394,7 +406,7 @@ def test_a_locked_drive_narrows_to_the_tracking_window(hypotheses):
     drive = _straight_drive(n=14)
     ev = evaluation.EvalConfig(
         odometry=_EXACT_ODOMETRY,
-        tracker=evaluation.TrackerSection(track_size=65, hypotheses=hypotheses),
+        tracker=evaluation.TrackerSection(track_size=65, hypotheses=hypotheses, off_road=0.0),
     )
     cfg = sequential.tracker_config(ev, K)
     sizes = []
@@ -424,7 +436,7 @@ def test_a_loss_in_the_tracking_window_widens_it_and_recovers():
         return p
 
     # floor 0: no prior mass where the peak jumps to, so the belief cannot simply follow it.
-    section = evaluation.TrackerSection(track_size=65, hypotheses=1, floor=0.0)
+    section = evaluation.TrackerSection(track_size=65, hypotheses=1, floor=0.0, off_road=0.0)
     ev = evaluation.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
     cfg = sequential.tracker_config(ev, K)
     track = _track_one(_peak_step(peak), _FakeSplit(_raster(4), drive), drive, cfg, _EXACT_ODOMETRY)
@@ -660,6 +672,7 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
     assert saved["splits"] == {}
     s = saved["sequential"]["drives_val"]
     assert s["drives"] == 2 and s["frames"] == s["filtered"]["count"] == s["single"]["count"]
+    assert s["off_road"] == 5.0  # the on-road prior it ran with
     # The GT BEV makes a near-perfect likelihood: the filter tracks every frame.
     assert s["tracked_pct"] == 100.0 and s["filtered"]["R@2m"] == 100.0
     assert s["filtered"]["APE"] < 1.0 and s["filtered"]["R@5deg"] == 100.0
@@ -722,6 +735,8 @@ def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, cap
     assert set(results) == set(saved["splits"]) == {"test"}  # single-frame, as before
     s = saved["sequential"]["drives_val"]
     assert s["temperature"] == 200.0 and s["temperature_fit"] is None
+    # The on-road prior, null by default: derived from the map's road channel.
+    assert cfg.eval.tracker.off_road is None and s["off_road"] == tracks.OFF_ROAD_NATS
     assert s["filtered"]["count"] == s["single"]["count"] == s["frames"] > 0
     assert "| seq_test [hd_road-building, tiny-seg] test |" in out
     assert "| seq_test [hd_road-building, tiny-seg] drives_val filtered |" in out
@@ -782,6 +797,8 @@ def test_the_on_road_prior_without_a_road_channel_is_a_config_error(data_root):
         build_experiment(tree)
     tree["eval"]["tracker"]["off_road"] = 0.0  # off: the map's channels are not read
     build_experiment(tree)
+    del tree["eval"]["tracker"]["off_road"]  # null, the default: 0 without a road channel
+    assert build_experiment(tree).eval.tracker.off_road is None
 
 
 # --------------------------------------------------------------------------- real data

@@ -50,6 +50,9 @@ TRACE_COUNTS: dict[tuple, int] = {}
 _TRACKER_DERIVED = ("num_rotations", "size", "resolution", "bev_size", "reference_size")
 # TrackerConfig's motion-noise fields: null in eval.tracker means "from eval.odometry".
 TRACKER_MOTION_FIELDS = ("sigma_xy", "sigma_xy_per_m", "sigma_yaw", "sigma_yaw_per_rad")
+# TrackerConfig's fields that null in eval.tracker derives from the map: the on-road prior
+# (sequential.tracks.OFF_ROAD_NATS with a road channel, 0 without).
+TRACKER_MAP_FIELDS = ("off_road",)
 # Where the app's default differs from the filter's own (TrackerConfig: one window, no tracking
 # window): a bank of 4 windows, the setting chosen on the unseen city's validation drives, and
 # the 65-cell tracking window, which gave the same tracks there at a third of the filter's time,
@@ -64,7 +67,7 @@ def _tracker_section():
     for f in dataclasses.fields(TrackerConfig):
         if f.name in _TRACKER_DERIVED:
             continue
-        if f.name in TRACKER_MOTION_FIELDS:
+        if f.name in TRACKER_MOTION_FIELDS + TRACKER_MAP_FIELDS:
             fields.append((f.name, float | None, dataclasses.field(default=None)))
         else:
             default = TRACKER_APP_DEFAULTS.get(f.name, f.default)
@@ -79,8 +82,10 @@ def _tracker_section():
         "(the filter's own: 10), and ``track_size`` = 65, the tracking window, where the "
         "filter's own has none). The motion-noise fields "
         f"({', '.join(TRACKER_MOTION_FIELDS)}) default to null: derived from ``eval.odometry`` "
-        "(the noise the filter's prediction must allow for); a number overrides. K, the window "
-        "size and the resolution follow the solver."
+        "(the noise the filter's prediction must allow for); a number overrides. ``off_road`` "
+        "defaults to null: the on-road prior derived from the map (10 nats with a road channel, "
+        "0 without; ``sequential.tracker_config``). K, the window size and the resolution "
+        "follow the solver."
     )
     return cls
 

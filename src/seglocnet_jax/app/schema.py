@@ -269,10 +269,11 @@ def _check_cross(cfg: ExperimentConfig) -> None:
         from seglocnet_jax import sequential
 
         try:  # the filter's config, as the evaluation will build it
-            sequential.tracker_config(cfg.eval, cfg.solver.num_rotations)
+            sequential.tracker_config(cfg.eval, cfg.solver.num_rotations, cfg.map.channels)
         except (TypeError, ValueError) as err:
             raise ConfigError(f"eval.tracker / eval.odometry: {err}") from err
-        if cfg.eval.tracker.off_road > 0 and "road" not in cfg.map.channels:
+        off_road = cfg.eval.tracker.off_road
+        if off_road is not None and off_road > 0 and "road" not in cfg.map.channels:
             raise ConfigError(
                 f"eval.tracker.off_road={cfg.eval.tracker.off_road} reads the map's road channel, "
                 f"but map.channels={list(cfg.map.channels)} has none; set eval.tracker.off_road=0"

@@ -155,7 +155,7 @@ def evaluate_sequential(
     only when ``eval.temperature`` is null). ``output_dir``: per-frame arrays
     (``sequential/<split>.npz``) and, with ``eval.num_figures > 0``, figures
     (``figures/sequential/``: drives, error vs distance, the calibration figure)."""
-    cfg = tracker_config(eval_cfg, num_rotations)
+    cfg = tracker_config(eval_cfg, num_rotations, channels)
     t_fit = time.time()
     if eval_cfg.temperature is None:
         batches, n = temperature_batches()
@@ -252,6 +252,7 @@ def evaluate_sequential(
         }
         summary.update(
             temperature=temperature,
+            off_road=cfg.off_road,  # the on-road prior the filter ran with (nats per frame)
             temperature_fit=fit,
             temperature_fit_s=round(t_fit, 1),
             calibration=name == eval_cfg.calibration_split,
