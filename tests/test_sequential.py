@@ -25,7 +25,7 @@ from seglocnet_jax.data import real_align as ra
 from seglocnet_jax.data import real_convert as rconv
 from seglocnet_jax.data.loader import LoaderConfig
 from seglocnet_jax.model.config import ModelConfig
-from seglocnet_jax.sequential import tracks
+from seglocnet_jax.sequential import settings, tracks
 from seglocnet_jax.training import step as step_lib
 
 K = 16
@@ -342,7 +342,7 @@ def test_the_on_road_prior_drops_a_look_alike_off_the_road(off_road):
 def test_a_null_on_road_prior_is_derived_from_the_maps_channels():
     ev = evaluation.EvalConfig()  # the app's default: null
     assert ev.tracker.off_road is None
-    assert sequential.tracker_config(ev, K, ("road", "building")).off_road == tracks.OFF_ROAD_NATS
+    assert sequential.tracker_config(ev, K, ("road", "building")).off_road == settings.OFF_ROAD_NATS
     assert sequential.tracker_config(ev, K, ("building",)).off_road == 0.0  # no road to keep to
     with pytest.raises(ValueError, match="eval.tracker.off_road is null"):
         sequential.tracker_config(ev, K)
@@ -355,8 +355,8 @@ def test_the_on_road_prior_needs_a_road_channel():
     raster = maps.CityRaster(raster.mask[1:], raster.grid, ("building",), "town")
     cfg = tr.TrackerConfig(num_rotations=K, off_road=3.0)
     with pytest.raises(ValueError, match="off_road = 3.0 needs a 'road' channel.*'town'"):
-        tracks.road_channels({"town": raster}, cfg)
-    assert tracks.road_channels({"town": raster}, tr.TrackerConfig(num_rotations=K)) is None
+        settings.road_channels({"town": raster}, cfg)
+    assert settings.road_channels({"town": raster}, tr.TrackerConfig(num_rotations=K)) is None
 
 
 def test_a_loss_in_either_window_restarts_the_acquisition_window_on_the_box():
@@ -736,7 +736,7 @@ def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, cap
     s = saved["sequential"]["drives_val"]
     assert s["temperature"] == 200.0 and s["temperature_fit"] is None
     # The on-road prior, null by default: derived from the map's road channel.
-    assert cfg.eval.tracker.off_road is None and s["off_road"] == tracks.OFF_ROAD_NATS
+    assert cfg.eval.tracker.off_road is None and s["off_road"] == settings.OFF_ROAD_NATS
     assert s["filtered"]["count"] == s["single"]["count"] == s["frames"] > 0
     assert "| seq_test [hd_road-building, tiny-seg] test |" in out
     assert "| seq_test [hd_road-building, tiny-seg] drives_val filtered |" in out

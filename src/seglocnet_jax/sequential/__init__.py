@@ -94,6 +94,7 @@ from seglocnet_jax.sequential.report import (
     write_arrays,
     write_figures,
 )
+from seglocnet_jax.sequential.settings import tracker_config
 from seglocnet_jax.sequential.temperature import (
     TemperatureFit,
     choose_filter_temperature,
@@ -105,7 +106,6 @@ from seglocnet_jax.sequential.tracks import (
     filter_tile,
     start_belief,
     track_split,
-    tracker_config,
 )
 
 __all__ = [
