@@ -135,8 +135,8 @@ def findings(data) -> list[tuple[str, bool | None, str, str]]:
 
     seeds = [r(n) for n in ("hd", "hd_seed1", "hd_seed2")]
     add(
-        "I: HD > SD > NM at R@1m (test)",
-        [r("hd"), r("sd"), r("nm")],
+        "I: HD > NM > SD at R@1m (test)",
+        [r("hd"), r("nm"), r("sd")],
         lambda a, b, c: a > b > c,
         lambda a, b, c: min(a - b, b - c, key=abs),
     )

@@ -88,7 +88,7 @@ def test_run_skip_and_collect(tmp_path):
     gt = rows["GT segmentation, HD"].split("|")
     assert float(gt[2]) >= 50.0 and float(gt[6]) >= 50.0  # R@1m, R@1° of GT labels (K = 64)
     assert "@unknown" in rows["SegLocNet-HD"]  # the commit of the code that ran the row
-    assert "| I: HD > SD > NM at R@1m (test) | – | not all rows measured |" in text
+    assert "| I: HD > NM > SD at R@1m (test) | – | not all rows measured |" in text
     for key in ("i", "iii", "iv", "v", "modality", "seeds"):
         assert (figs / f"results_{key}.png").stat().st_size > 1000
 
@@ -162,7 +162,7 @@ def test_findings_weigh_the_deciding_gap_against_the_seed_range():
     both = by_text["IV: both together best (R@1m: both, road, building)"]
     assert road[1] is True and road[3] == "gap 3.0 ≤ seed range 5.0"
     assert both[1] is True and both[3] == "gap 7.0 > seed range 5.0"
-    assert by_text["I: HD > SD > NM at R@1m (test)"][1] is None
+    assert by_text["I: HD > NM > SD at R@1m (test)"][1] is None
     data.update(camera=row(8.0), lidar=row(60.0))  # the fused row at seed 0 is hd
     modality = [f for f in mod.findings(data) if f[0].startswith("Modality")]
     assert [m[1:] for m in modality] == [(False, "54.0 / 8.0 / 60.0", "gap 6.0 > seed range 5.0")]
