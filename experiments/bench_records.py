@@ -167,7 +167,7 @@ def sim_preset(name: str) -> dict:
 
 def sim_samples(preset: str, n: int) -> list[dict]:
     """``n`` frames of Helsinki rendered with a simulator preset, with priors."""
-    from seglocnet_jax.data.sim_source import SimSource
+    from seglocnet_jax.data.simulated.source import SimSource
 
     source = SimSource("helsinki", sim_preset(preset), 0)
     poses = source.drive(np.random.default_rng(0), n)

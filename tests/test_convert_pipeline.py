@@ -11,14 +11,14 @@ from shapely.geometry import LineString, Polygon
 
 import fixtures_real as fx
 from seglocnet_jax import geometry, maps
-from seglocnet_jax.data import argoverse as av
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import nuscenes as nu
-from seglocnet_jax.data import real_align as ra
-from seglocnet_jax.data import real_convert as rconv
-from seglocnet_jax.data import real_maps
 from seglocnet_jax.data.loader import LoaderConfig, make_loader
-from seglocnet_jax.data.real_common import RealDataError
+from seglocnet_jax.data.real import align_fit as ra
+from seglocnet_jax.data.real import argoverse as av
+from seglocnet_jax.data.real import convert as rconv
+from seglocnet_jax.data.real import map_rasters as real_maps
+from seglocnet_jax.data.real import nuscenes as nu
+from seglocnet_jax.data.real.common import RealDataError
 
 OUT_HW = (12, 20)
 SEQ_KEYS = ("sequence_id", "frame_index", "timestamp")

@@ -279,8 +279,8 @@ def test_simulator_stores_png_and_compact_lidar_converters_store_jpeg(tmp_path):
     import yaml
 
     from data_synth import Factory, small_config
-    from seglocnet_jax.data import prepare as pp
-    from seglocnet_jax.data import real_convert as rconv
+    from seglocnet_jax.data.real import convert as rconv
+    from seglocnet_jax.data.simulated import prepare as pp
     from seglocnet_jax.data.writer import DatasetWriter
 
     def first_fields(ddir, split):

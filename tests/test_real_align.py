@@ -13,12 +13,12 @@ from shapely.geometry import LineString, Polygon
 import fixtures_real as fx
 from seglocnet_jax import geometry, maps
 from seglocnet_jax.config_util import ConfigError
-from seglocnet_jax.data import argoverse as av
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import real_align as ra
-from seglocnet_jax.data import real_convert as rconv
-from seglocnet_jax.data import real_maps
-from seglocnet_jax.data.real_common import RealDataError
+from seglocnet_jax.data.real import align_fit as ra
+from seglocnet_jax.data.real import argoverse as av
+from seglocnet_jax.data.real import convert as rconv
+from seglocnet_jax.data.real import map_rasters as real_maps
+from seglocnet_jax.data.real.common import RealDataError
 
 FAR = (3000.0, 2000.0)  # the second log's origin: 3.6 km from the first
 # OSM = TRUTH^-1(city frame): a shift and a rotation about a point between the logs, so the

@@ -45,7 +45,7 @@ from scipy import ndimage
 from tqdm.auto import tqdm
 
 from seglocnet_jax import geometry
-from seglocnet_jax.data.align_windows import (  # noqa: F401 - public for callers and tests
+from seglocnet_jax.data.real.align_windows import (  # noqa: F401 - public for callers and tests
     _shift_px,
     _template,
     _warp,
@@ -54,7 +54,7 @@ from seglocnet_jax.data.align_windows import (  # noqa: F401 - public for caller
     place_windows,
     window_grids,
 )
-from seglocnet_jax.data.alignment import (  # noqa: F401 - the fit's types, re-used by callers
+from seglocnet_jax.data.real.alignment import (  # noqa: F401 - the fit's types, re-used by callers
     _PREFIX,
     CHECK_KEYS,
     FIT_KEYS,

@@ -3,15 +3,15 @@
 Per city: OSM comes from the user's extract (``ConvertConfig.osm[city]``), read through the
 dataset's own map frame (``reader.projection(city)``: nuScenes topocentric about the map origin,
 Argoverse UTM minus the city origin) and clipped to the drivable area's surroundings. A
-similarity correction (:mod:`.real_align`) is fitted once per city by correlating the dataset's
+similarity correction (:mod:`.align_fit`) is fitted once per city by correlating the dataset's
 drivable area with the OSM road raster in windows on the city's frames (rasterized per window,
 never for the whole city), checked (a degenerate fit is refused, naming the remedies), stored in
 the manifest (``alignment``: the values, their quality per city and per window) and applied to
 every OSM geometry; ``dataset.convert.align.manual`` gives a city's correction by hand.
 HD = drivable area + corrected OSM buildings; SD = corrected OSM centrelines
 buffered to ``road_width`` + buildings. Rasters land in ``maps/<variant>/<city>.npz``
-(:func:`.variants.variant_path`: the dataset's city names are the keys) and
-``manifest.map_variants`` exactly as :mod:`.variants` writes them, so the loader reads both the
+(:func:`..variants.variant_path`: the dataset's city names are the keys) and
+``manifest.map_variants`` exactly as :mod:`..variants` writes them, so the loader reads both the
 same way.
 """
 
@@ -26,8 +26,8 @@ from shapely import affinity
 
 from seglocnet_jax import fileio, geometry, maps
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import real_align as ra
-from seglocnet_jax.data.real_common import RealDataError
+from seglocnet_jax.data.real import align_fit as ra
+from seglocnet_jax.data.real.common import RealDataError
 from seglocnet_jax.data.variants import variant_path
 
 # OSM is read this far (m) around the drivable area: a tile (64 m) around a prior (32 m) plus
@@ -91,8 +91,8 @@ def fit_alignment(
 
     Identity when ``cfg.enabled`` is false or the city has no OSM extract; ``cfg.manual[name]``
     when given; else fitted in windows on ``points (N, 2)`` (the city's frame positions; None:
-    the drivable area's outline) by :func:`.real_align.fit_windows`, which refuses a degenerate
-    fit (:class:`.real_align.AlignmentError`) unless ``check`` is false.
+    the drivable area's outline) by :func:`.align_fit.fit_windows`, which refuses a degenerate
+    fit (:class:`.alignment.AlignmentError`) unless ``check`` is false.
     """
     name = city.name
     c = drivable.centroid
@@ -133,13 +133,13 @@ def ensure_real_variants(
 ) -> dict:
     """Fits (or reuses) each city's alignment and writes the missing variant rasters.
 
-    Returns ``{city: alignment report}`` (:meth:`.real_align.Alignment.report`: shift m,
+    Returns ``{city: alignment report}`` (:meth:`.alignment.Alignment.report`: shift m,
     rotation deg, scale, score, method, quality, windows; plus the OSM path and the manual
     entry), also stored in ``manifest.alignment``. The fit windows lie on ``poses`` (city ->
     ``(N, 3)``; without, on the drivable area). Every city that needs a fit is fitted before
-    anything is drawn or stored, and refused fits raise one :class:`.real_align.AlignmentError`
+    anything is drawn or stored, and refused fits raise one :class:`.alignment.AlignmentError`
     naming each city, so a changed search config can be tried on the same directory. A stored
-    alignment fitted with another ``dataset.convert.align`` config (:data:`.real_align.FIT_KEYS`)
+    alignment fitted with another ``dataset.convert.align`` config (:data:`.alignment.FIT_KEYS`)
     is refused, naming the keys; one fitted from another OSM extract (or none), or with another
     ``manual`` entry, is fitted again and the OSM-dependent rasters of the city are redrawn.
     With ``poses``, the report adds ``poses_on_road``: per variant, the fraction of poses on its
