@@ -20,7 +20,7 @@ from seglocnet_jax.app import eval_run, train_run
 from seglocnet_jax.app.schema import build_experiment
 from seglocnet_jax.config_util import ConfigError
 from seglocnet_jax.data.loader import LoaderConfig
-from seglocnet_jax.data.real import align_fit as ra
+from seglocnet_jax.data.real import alignment as ra
 from seglocnet_jax.data.real import argoverse as av
 from seglocnet_jax.data.real import convert as rconv
 from seglocnet_jax.data.real import nuscenes as nu

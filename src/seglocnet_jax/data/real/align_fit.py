@@ -38,6 +38,7 @@ city a correction by hand instead; ``enabled: false`` uses the identity everywhe
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -45,29 +46,24 @@ from scipy import ndimage
 from tqdm.auto import tqdm
 
 from seglocnet_jax import geometry
-from seglocnet_jax.data.real.align_windows import (  # noqa: F401 - public for callers and tests
+from seglocnet_jax.data.real import align_checks as checks
+from seglocnet_jax.data.real.align_windows import (
     _shift_px,
     _template,
     _warp,
     downsample,
-    fine_factor,
     place_windows,
     window_grids,
 )
-from seglocnet_jax.data.real.alignment import (  # noqa: F401 - the fit's types, re-used by callers
-    _PREFIX,
-    CHECK_KEYS,
-    FIT_KEYS,
+from seglocnet_jax.data.real.alignment import (
     AlignConfig,
     Alignment,
     AlignmentError,
     Similarity,
     Window,
-    _fmt_xy,
-    report_lines,
 )
 
-# --------------------------------------------------------------------------- the fit
+# --------------------------------------------------------------------------- volumes and peaks
 
 
 def _parabola(left: float, centre: float, right: float) -> float:
@@ -130,6 +126,216 @@ def _rot(theta: float, scale: float) -> np.ndarray:
     return np.array([[c, -s], [s, c]])
 
 
+@dataclasses.dataclass(frozen=True)
+class _Search:
+    """The windows a fit searches over (those with drivable area) and the candidate grid.
+
+    Attributes:
+      windows: the used windows; templates: ``(B, 1, n, n)`` their templates; weights: ``(B,)``
+        each template's positive weight.
+      offsets: ``(B, 2)`` metres from the city centre (the windows' weighted centre,
+        ``centre``) to each window's centre.
+      tile_grids: the window grown by the shift search, where the warped OSM is drawn.
+      res: working resolution (m/px); k: the shift search's half-width (px).
+      angles: ``(A,)`` searched rotations (rad), ``step`` apart; scales: ``(S,)`` searched scales.
+    """
+
+    windows: list[Window]
+    templates: np.ndarray
+    weights: np.ndarray
+    offsets: np.ndarray
+    centre: np.ndarray
+    tile_grids: list[geometry.RasterGrid]
+    res: float
+    k: int
+    angles: np.ndarray
+    step: float
+    scales: np.ndarray
+
+    @property
+    def nv(self) -> int:
+        """Shifts searched per axis."""
+        return 2 * self.k + 1
+
+    def volumes(self, scale: float, angle: float) -> np.ndarray:
+        """``(B, nv, nv)`` each window's local shift scores with OSM warped by one candidate
+        about the window's centre."""
+        from seglocnet_jax import solver  # jax is imported only when a fit runs
+
+        tiles = np.stack(
+            [
+                _warp(
+                    w.source,
+                    w.source_grid,
+                    g,
+                    Similarity(rotation=angle, scale=scale, centre=w.centre),
+                )
+                for w, g in zip(self.windows, self.tile_grids, strict=True)
+            ]
+        )[:, None]
+        out = solver.score_volume_batch(self.templates, tiles, num_rotations=4, batch_chunk=1)
+        return np.asarray(out)[:, 0]
+
+    def joint_at(self, vol_b: np.ndarray, theta: float, scale: float, cubic: bool = False):
+        """Window volumes ``(B, nv, nv)`` moved into the city fit's frame: a city similarity
+        (``theta``, ``scale``) about the centre moves window ``b`` by ``(sR - I) offsets[b]``."""
+        off = self.offsets @ (_rot(theta, scale) - np.eye(2)).T  # (B, 2) metres
+        return _shifted(vol_b, off[:, 1] / self.res, -off[:, 0] / self.res, cubic)
+
+
+def _search(windows: list[Window], cfg: AlignConfig, city: str) -> tuple[_Search, list[int]]:
+    """The search over ``windows`` and the indices of the used ones; refuses no window or no
+    drivable area."""
+    if not windows:
+        raise AlignmentError(f"OSM alignment of {city!r}: no frames to place a fit window on")
+    res = windows[0].template_grid.resolution
+    n = windows[0].template_grid.height
+    k = _shift_px(cfg, res)
+    for win in windows:
+        if win.target.shape != (n, n) or win.template_grid.height != n:
+            raise ValueError(f"fit windows must all be ({n}, {n}), got {win.target.shape}")
+    tmpls = [_template(win.target, cfg, res) for win in windows]
+    weights = np.array([float(np.clip(t, 0, None).sum()) for t in tmpls])
+    used = [i for i in range(len(windows)) if weights[i] > 0]
+    if not used:
+        raise AlignmentError(
+            f"OSM alignment of {city!r}: the drivable area is empty in every fit window "
+            f"({sum(w.frames for w in windows)} frames): nothing to align"
+        )
+    wins = [windows[i] for i in used]
+    wt = weights[used]
+    centres = np.array([w.centre for w in wins])  # (B, 2)
+    centre = (wt[:, None] * centres).sum(0) / wt.sum()
+    steps = int(math.floor(cfg.max_rotation_deg / cfg.rotation_step_deg + 1e-9))
+    step = math.radians(cfg.rotation_step_deg)
+    t = n + 2 * k
+    tile_grids = [
+        geometry.RasterGrid(
+            w.template_grid.x_min - k * res, w.template_grid.y_max + k * res, t, t, res
+        )
+        for w in wins
+    ]
+    search = _Search(
+        windows=wins,
+        templates=np.stack([tmpls[i] for i in used])[:, None],  # (B, 1, n, n)
+        weights=wt,
+        offsets=centres - centre,
+        centre=centre,
+        tile_grids=tile_grids,
+        res=res,
+        k=k,
+        angles=np.arange(-steps, steps + 1) * step,
+        step=step,
+        scales=np.asarray(sorted(cfg.scales), np.float64),
+    )
+    return search, used
+
+
+def _all_volumes(search: _Search, city: str, progress: bool) -> np.ndarray:
+    """``(B, S, A, nv, nv)`` every window's volume at every searched scale and rotation."""
+    ns, na, nv = len(search.scales), len(search.angles), search.nv
+    vols = np.zeros((len(search.windows), ns, na, nv, nv), np.float32)
+    with tqdm(total=ns * na, desc=f"align OSM {city}", unit="cand", disable=not progress) as bar:
+        for i, s in enumerate(search.scales):
+            for j, a in enumerate(search.angles):
+                vols[:, i, j] = search.volumes(float(s), float(a))
+                bar.update()
+    return vols
+
+
+def _own_peak(search: _Search, vol: np.ndarray, weight: float, radius: float) -> dict:
+    """One window alone (``vol``: ``(S, A, nv, nv)``): its best candidate's score, sharpness,
+    sub-pixel local shift (metres, at the window centre) and whether it lies on the bound."""
+    k, res, nv = search.k, search.res, search.nv
+    i, j, h, w = np.unravel_index(int(np.argmax(vol)), vol.shape)
+    v = vol[i, j]
+    dh, dw = _subpixel(v, h, w)
+    return {
+        "score": float(v[h, w] / weight),
+        "sharpness": _sharpness(v, h, w, radius),
+        "shift": np.array([-(w + dw - k) * res, (h + dh - k) * res]),
+        "on_bound": bool(h in (0, nv - 1) or w in (0, nv - 1)),
+    }
+
+
+# --------------------------------------------------------------------------- the city fit
+
+
+@dataclasses.dataclass(frozen=True)
+class _FineRotations:
+    """The city fit's rotation grid: ``sub`` positions per searched rotation step, so that the
+    farthest window moves at most half a pixel per position; ``count`` positions ``step``
+    apart from the first searched rotation."""
+
+    first: float
+    sub: int
+    count: int
+    step: float
+
+    @classmethod
+    def of(cls, search: _Search) -> _FineRotations:
+        angles, res = search.angles, search.res
+        reach = float(np.linalg.norm(search.offsets, axis=1).max())
+        sub = 1 if len(angles) == 1 else max(1, math.ceil(search.step * reach / (res / 2)))
+        return cls(angles[0], sub, (len(angles) - 1) * sub + 1, search.step / sub)
+
+    def theta(self, f: float):
+        return self.first + f * self.step
+
+
+def _coarse_fit(search: _Search, vols: np.ndarray, fine: _FineRotations) -> tuple[int, int]:
+    """``(scale index, fine rotation)`` whose joint peak is highest, with each window's volume
+    interpolated linearly between the searched rotations."""
+    best = None
+    for i, s in enumerate(search.scales):
+        for f in range(fine.count):
+            j, frac = divmod(f, fine.sub)
+            theta = fine.theta(f)
+            contrib = search.joint_at(vols[:, i, j], theta, s)
+            if frac:
+                alpha = frac / fine.sub
+                contrib = (1 - alpha) * contrib + alpha * search.joint_at(
+                    vols[:, i, j + 1], theta, s
+                )
+            peak = float(contrib.sum(0).max())
+            if best is None or peak > best[0]:
+                best = (peak, i, f)
+    return best[1], best[2]
+
+
+class _ExactJoint:
+    """The joint volume at fine rotation positions from exact (not interpolated) window
+    volumes at one scale, each computed once: ``at(f) -> (peak, h, w, joint, contrib)``."""
+
+    def __init__(self, search: _Search, fine: _FineRotations, scale: float):
+        self.search, self.fine, self.scale = search, fine, scale
+        self.cache: dict[float, tuple] = {}
+
+    def __call__(self, f: float) -> tuple:
+        if f not in self.cache:
+            theta = float(self.fine.theta(f))
+            vols = self.search.volumes(self.scale, theta)
+            contrib = self.search.joint_at(vols, theta, self.scale, cubic=True)
+            joint = contrib.sum(0)
+            h, w = np.unravel_index(int(np.argmax(joint)), joint.shape)
+            self.cache[f] = (float(joint[h, w]), h, w, joint, contrib)
+        return self.cache[f]
+
+
+def _refine_rotation(at: _ExactJoint, f: int) -> tuple[int, float]:
+    """Hill climb from fine position ``f`` to a local maximum of the exact peaks, then a
+    parabola through it and its neighbours: ``(f, sub-position offset)``."""
+    count = at.fine.count
+    for _ in range(2 * at.fine.sub + 2):
+        up = at(f + 1)[0] if f < count - 1 else -np.inf
+        down = at(f - 1)[0] if f > 0 else -np.inf
+        if max(up, down) <= at(f)[0]:
+            break
+        f = f + 1 if up > down else f - 1
+    df = _parabola(at(f - 1)[0], at(f)[0], at(f + 1)[0]) if 0 < f < count - 1 else 0.0
+    return f, df
+
+
 def fit_windows(
     windows: list[Window],
     cfg: AlignConfig = AlignConfig(),
@@ -148,134 +354,25 @@ def fit_windows(
         the returned :class:`Alignment`).
       unchecked_frames: frames of windows beyond ``max_windows`` (report).
     """
-    from seglocnet_jax import solver  # jax is imported only when a fit runs
-
-    if not windows:
-        raise AlignmentError(f"OSM alignment of {city!r}: no frames to place a fit window on")
-    res = windows[0].template_grid.resolution
-    n = windows[0].template_grid.height
-    k = _shift_px(cfg, res)
-    for win in windows:
-        if win.target.shape != (n, n) or win.template_grid.height != n:
-            raise ValueError(f"fit windows must all be ({n}, {n}), got {win.target.shape}")
-    tmpls = [_template(win.target, cfg, res) for win in windows]
-    weights = np.array([float(np.clip(t, 0, None).sum()) for t in tmpls])
-    used = [i for i in range(len(windows)) if weights[i] > 0]
-    if not used:
-        raise AlignmentError(
-            f"OSM alignment of {city!r}: the drivable area is empty in every fit window "
-            f"({sum(w.frames for w in windows)} frames): nothing to align"
-        )
-    wins = [windows[i] for i in used]
-    tm = np.stack([tmpls[i] for i in used])[:, None]  # (B, 1, n, n)
-    wt = weights[used]
-    centres = np.array([w.centre for w in wins])  # (B, 2)
-    centre = (wt[:, None] * centres).sum(0) / wt.sum()
-    steps = int(math.floor(cfg.max_rotation_deg / cfg.rotation_step_deg + 1e-9))
-    step = math.radians(cfg.rotation_step_deg)
-    angles = np.arange(-steps, steps + 1) * step
-    scales = np.asarray(sorted(cfg.scales), np.float64)
-    nv = 2 * k + 1
-    vols = np.zeros((len(wins), len(scales), len(angles), nv, nv), np.float32)
-    t = n + 2 * k
-    tile_grids = [
-        geometry.RasterGrid(
-            w.template_grid.x_min - k * res, w.template_grid.y_max + k * res, t, t, res
-        )
-        for w in wins
-    ]
-
-    def volumes(scale: float, angle: float) -> np.ndarray:  # (B, nv, nv) local shift scores
-        tiles = np.stack(
-            [
-                _warp(
-                    w.source,
-                    w.source_grid,
-                    g,
-                    Similarity(rotation=angle, scale=scale, centre=w.centre),
-                )
-                for w, g in zip(wins, tile_grids, strict=True)
-            ]
-        )[:, None]
-        out = solver.score_volume_batch(tm, tiles, num_rotations=4, batch_chunk=1)
-        return np.asarray(out)[:, 0]
-
-    total = len(scales) * len(angles)
-    with tqdm(total=total, desc=f"align OSM {city}", unit="cand", disable=not progress) as bar:
-        for i, s in enumerate(scales):
-            for j, a in enumerate(angles):
-                vols[:, i, j] = volumes(float(s), float(a))
-                bar.update()
-
-    # Each window alone: its best candidate and sub-pixel local shift (at the window centre).
+    search, used = _search(windows, cfg, city)
+    res, k, nv = search.res, search.k, search.nv
+    vols = _all_volumes(search, city, progress)
     radius = max(cfg.road_width / 2, 2 * res) / res
     radius = min(radius, k * 0.9) if k > 0 else radius
-    own = []
-    for b in range(len(wins)):
-        i, j, h, w = np.unravel_index(int(np.argmax(vols[b])), vols[b].shape)
-        v = vols[b, i, j]
-        dh, dw = _subpixel(v, h, w)
-        own.append(
-            {
-                "score": float(v[h, w] / wt[b]),
-                "sharpness": _sharpness(v, h, w, radius),
-                "shift": np.array([-(w + dw - k) * res, (h + dh - k) * res]),
-                "on_bound": bool(h in (0, nv - 1) or w in (0, nv - 1)),
-            }
-        )
+    own = [_own_peak(search, vols[b], search.weights[b], radius) for b in range(len(used))]
 
-    # The city: one similarity about `centre`; window b moves by shift + (sR - I) d_b. A
-    # rotation grid fine enough that the farthest window moves <= res / 2 per step, on window
-    # volumes interpolated linearly between the searched rotations, picks scale and rotation;
-    # then exact volumes at that rotation and its neighbours (hill climb) refine it.
-    d = centres - centre  # (B, 2)
-    reach = float(np.linalg.norm(d, axis=1).max())
-    sub = 1 if len(angles) == 1 else max(1, math.ceil(step * reach / (res / 2)))
-    fine = (len(angles) - 1) * sub + 1
-    fstep = step / sub
-
-    def joint_at(vol_b: np.ndarray, theta: float, scale: float, cubic: bool = False):
-        off = d @ (_rot(theta, scale) - np.eye(2)).T  # (B, 2) metres
-        return _shifted(vol_b, off[:, 1] / res, -off[:, 0] / res, cubic)
-
-    best = None
-    for i, s in enumerate(scales):
-        for f in range(fine):
-            j, frac = divmod(f, sub)
-            theta = angles[0] + f * fstep
-            contrib = joint_at(vols[:, i, j], theta, s)
-            if frac:
-                alpha = frac / sub
-                contrib = (1 - alpha) * contrib + alpha * joint_at(vols[:, i, j + 1], theta, s)
-            peak = float(contrib.sum(0).max())
-            if best is None or peak > best[0]:
-                best = (peak, i, f)
-    _, i, f = best
-    s_fit = float(scales[i])
-    exact = {}
-
-    def at(f_: float):  # exact joint at fine position f_: (peak, h, w, joint, contrib)
-        if f_ not in exact:
-            theta_ = float(angles[0] + f_ * fstep)
-            contrib_ = joint_at(volumes(s_fit, theta_), theta_, s_fit, cubic=True)
-            joint_ = contrib_.sum(0)
-            h_, w_ = np.unravel_index(int(np.argmax(joint_)), joint_.shape)
-            exact[f_] = (float(joint_[h_, w_]), h_, w_, joint_, contrib_)
-        return exact[f_]
-
-    for _ in range(2 * sub + 2):  # climb to a local maximum of the exact peaks
-        up = at(f + 1)[0] if f < fine - 1 else -np.inf
-        down = at(f - 1)[0] if f > 0 else -np.inf
-        if max(up, down) <= at(f)[0]:
-            break
-        f = f + 1 if up > down else f - 1
-    df = _parabola(at(f - 1)[0], at(f)[0], at(f + 1)[0]) if 0 < f < fine - 1 else 0.0
-    on_rot_bound = len(angles) > 1 and f in (0, fine - 1)
-    theta = float(angles[0] + (f + df) * fstep)
+    # Scale and rotation on interpolated volumes, then the rotation refined on exact ones.
+    fine = _FineRotations.of(search)
+    i, f = _coarse_fit(search, vols, fine)
+    s_fit = float(search.scales[i])
+    at = _ExactJoint(search, fine, s_fit)
+    f, df = _refine_rotation(at, f)
+    theta = float(fine.theta(f + df))
     _, h, w, joint, contrib = at(f + df)  # exact at the refined rotation
     dh, dw = _subpixel(joint, h, w)
     shift = np.array([-(w + dw - k) * res, (h + dh - k) * res])
-    sim_score = float(joint[h, w] / wt.sum())
+    sim_score = float(joint[h, w] / search.weights.sum())
+    centre = search.centre
     sim = Similarity(
         shift=(float(shift[0]), float(shift[1])),
         rotation=theta,
@@ -283,150 +380,33 @@ def fit_windows(
         centre=(float(centre[0]), float(centre[1])),
         score=sim_score,
     )
-    sharpness = _sharpness(joint, h, w, radius)
-    local = shift[None] + d @ (_rot(theta, s_fit) - np.eye(2)).T  # (B, 2) at the fit
-
-    # Per-window quality and status.
-    reports = []
-    min_s, min_sh = cfg.min_score, cfg.min_sharpness
-    for b, win in enumerate(wins):
-        o = own[b]
-        outside = bool(np.abs(local[b]).max() > cfg.max_shift + res / 2)
-        residual = float(np.linalg.norm(local[b] - o["shift"]))
-        sharp = not o["sharpness"] < min_sh  # NaN (not measurable) counts as sharp
-        if o["score"] < min_s:
-            status = "empty"
-        elif sharp and o["on_bound"]:
-            status = "on_bound"
-        elif sharp and residual > cfg.max_disagreement:
-            status = "disagrees"
-        elif outside:
-            status = "outside_search"
-        elif not sharp:
-            status = "flat"
-        else:
-            status = "ok"
-        reports.append(
-            {
-                "centre_m": [float(v) for v in win.centre],
-                "frames": int(win.frames),
-                "score": o["score"],
-                "score_at_fit": float(contrib[b, h, w] / wt[b]),
-                "sharpness": o["sharpness"],
-                "shift_m": [float(v) for v in o["shift"]],
-                "fit_shift_m": [float(v) for v in local[b]],
-                "residual_m": residual,
-                "on_bound": o["on_bound"],
-                "status": status,
-            }
-        )
-    for b in sorted(set(range(len(windows))) - set(used)):
-        win = windows[b]
-        reports.append(
-            {"centre_m": [float(v) for v in win.centre], "frames": int(win.frames)}
-            | {"status": "no_drivable"}
-        )
-    judged = [r for r in reports if r["status"] in ("ok", "disagrees")]
-    agreeing = [r for r in judged if r["status"] == "ok"]
-    agreement = len(agreeing) / len(judged) if judged else float("nan")
-    quality = {
-        "score": sim_score,
-        "sharpness": sharpness,
-        "windows": len(windows),
-        "sharp_windows": len(judged),
-        "agreement": agreement,
-        "max_residual_m": max((r["residual_m"] for r in judged), default=float("nan")),
-        "unchecked_frames": int(unchecked_frames),
-        "resolution": res,
-        "window_m": n * res,
-    }
-
-    problems, remedies = [], []
-    by = {s: [r for r in reports if r.get("status") == s] for s in ("empty", "on_bound")}
-    by["outside_search"] = [r for r in reports if r.get("status") == "outside_search"]
-
-    def where(rs, extra):
-        shown = ", ".join(
-            f"{_fmt_xy(r['centre_m'])} ({r['frames']} frames{extra(r)})" for r in rs[:3]
-        )
-        return shown + (f" and {len(rs) - 3} more" if len(rs) > 3 else "")
-
-    bigger = f"a larger search: {_PREFIX}.max_shift={2 * cfg.max_shift:g}"
-    if by["empty"]:
-        problems.append(
-            f"no OSM road matches the drivable area (score < min_score {min_s:g}) in "
-            f"{len(by['empty'])} of {len(windows)} window(s): "
-            + where(by["empty"], lambda r: f", score {r['score']:.3f}")
-            + " (the OSM extract does not cover these frames, or it is off by more than "
-            "max_shift there)"
-        )
-        remedies.append(f"an OSM extract that covers these frames (dataset.convert.osm.{city})")
-        remedies.append(bigger)
-    on_bound = bool(h in (0, nv - 1) or w in (0, nv - 1))
-    if on_bound or by["on_bound"] or by["outside_search"]:
-        what = []
-        if on_bound:
-            what.append(f"city shift ({shift[0]:+.1f}, {shift[1]:+.1f}) m")
-        if by["on_bound"]:
-            what.append(
-                "window(s) "
-                + where(
-                    by["on_bound"],
-                    lambda r: f", shift ({r['shift_m'][0]:+.1f}, {r['shift_m'][1]:+.1f}) m",
-                )
-            )
-        if by["outside_search"]:
-            what.append(
-                "window(s) where the city fit needs a shift beyond the search "
-                + where(
-                    by["outside_search"],
-                    lambda r: f", ({r['fit_shift_m'][0]:+.1f}, {r['fit_shift_m'][1]:+.1f}) m",
-                )
-            )
-        problems.append(
-            f"peak on the search bound (max_shift {cfg.max_shift:g} m): " + "; ".join(what)
-        )
-        if bigger not in remedies:
-            remedies.append(bigger)
-    if on_rot_bound:
-        problems.append(
-            f"rotation {math.degrees(theta):+.3f} deg on the search bound (max_rotation_deg "
-            f"{cfg.max_rotation_deg:g})"
-        )
-        remedies.append(f"a larger search: {_PREFIX}.max_rotation_deg={2 * cfg.max_rotation_deg:g}")
-    if len(scales) > 1 and i in (0, len(scales) - 1):
-        problems.append(
-            f"scale {scales[i]:.4f} on the search bound (scales {[float(s) for s in scales]})"
-        )
-        remedies.append(f"a wider {_PREFIX}.scales")
-    if sim_score < min_s:
-        problems.append(f"near-zero score {sim_score:.3f} < min_score {min_s:g}")
-    if sharpness < min_sh:
-        problems.append(
-            f"flat score: sharpness {sharpness:.3f} < min_sharpness {min_sh:g} (no distinct peak)"
-        )
-    if judged and agreement < cfg.min_agreement:
-        off = [r for r in judged if r["status"] == "disagrees"]
-        problems.append(
-            f"windows disagree: {len(agreeing)} of {len(judged)} sharp window(s) lie within "
-            f"max_disagreement {cfg.max_disagreement:g} m of the city fit (min_agreement "
-            f"{cfg.min_agreement:g}); off: "
-            + where(off, lambda r: f", {r['residual_m']:.1f} m")
-            + " (one correction cannot serve these areas)"
-        )
-        remedies.append(
-            f"if the OSM is known to be this inaccurate, a looser {_PREFIX}.max_disagreement "
-            "or min_agreement"
-        )
-    if problems:
-        remedies.append(
-            f"a manual correction: '+{_PREFIX}.manual.{city}={{shift: [dx, dy], rotation_deg: r, "
-            "scale: s, centre: [x, y]}' (metres in the dataset frame, degrees; {} for none in "
-            "this city)"
-        )
-        remedies.append(f"no correction at all: {_PREFIX}.enabled=false")
+    peak = checks.CityPeak(
+        shift=shift,
+        rotation=theta,
+        scale=s_fit,
+        score=sim_score,
+        sharpness=_sharpness(joint, h, w, radius),
+        shift_on_bound=bool(h in (0, nv - 1) or w in (0, nv - 1)),
+        rotation_on_bound=len(search.angles) > 1 and f in (0, fine.count - 1),
+        scale_on_bound=len(search.scales) > 1 and i in (0, len(search.scales) - 1),
+        scales=tuple(float(s) for s in search.scales),
+    )
+    local = shift[None] + search.offsets @ (_rot(theta, s_fit) - np.eye(2)).T  # (B, 2) at fit
+    reports = [
+        checks.window_report(win, own[b], local[b], contrib[b, h, w] / search.weights[b], cfg, res)
+        for b, win in enumerate(search.windows)
+    ]
+    reports += [
+        checks.unused_report(windows[b]) for b in sorted(set(range(len(windows))) - set(used))
+    ]
+    n = windows[0].template_grid.height
+    quality = checks.quality(reports, peak, len(windows), unchecked_frames, res, n * res)
+    problems, remedies = checks.problems(reports, peak, len(windows), cfg, city)
     out = Alignment(city, sim, "fit", quality, tuple(reports), tuple(problems), tuple(remedies))
     return out.check() if check else out
+
+
+# --------------------------------------------------------------------------- on rasters
 
 
 def align_rasters(
