@@ -6,7 +6,7 @@
         dataset.reader.dataroot=/data/av2/sensor +dataset.convert.osm.PIT=/data/osm/pit.osm.pbf
 
 Config: ``conf/dataset/<preset>.yaml`` (``argo_mia`` / ``argo_pit``) plus Hydra overrides. The
-logic lives in ``seglocnet_jax.data.real_convert``; an interrupted run resumes where it stopped.
+logic lives in ``seglocnet_jax.data.real.convert``; an interrupted run resumes where it stopped.
 """
 
 import sys
@@ -14,7 +14,7 @@ import sys
 from hydra import compose, initialize_config_dir
 
 from seglocnet_jax.app import hydra_glue
-from seglocnet_jax.data.real_convert import convert, from_tree, summary
+from seglocnet_jax.data.real.convert import convert, from_tree, summary
 
 
 def main(argv: list[str]) -> None:

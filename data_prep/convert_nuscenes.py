@@ -8,7 +8,7 @@
         'dataset.convert.splits={train: mini_train, val: mini_val}' ...
 
 Config: ``conf/dataset/nuscenes.yaml`` (Hydra overrides on the command line). The logic lives in
-``seglocnet_jax.data.real_convert``; an interrupted run resumes where it stopped.
+``seglocnet_jax.data.real.convert``; an interrupted run resumes where it stopped.
 """
 
 import sys
@@ -16,7 +16,7 @@ import sys
 from hydra import compose, initialize_config_dir
 
 from seglocnet_jax.app import hydra_glue
-from seglocnet_jax.data.real_convert import convert, from_tree, summary
+from seglocnet_jax.data.real.convert import convert, from_tree, summary
 
 
 def main(argv: list[str]) -> None:

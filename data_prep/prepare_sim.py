@@ -4,7 +4,8 @@
     python data_prep/prepare_sim.py data=full
     python data_prep/prepare_sim.py map=sd map.road_width=5   # adds one SD variant, no re-render
 
-The logic lives in ``seglocnet_jax.data.prepare``; an interrupted run resumes where it stopped.
+The logic lives in ``seglocnet_jax.data.simulated.prepare``; an interrupted run resumes where it
+stopped.
 """
 
 import hydra

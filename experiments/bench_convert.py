@@ -32,8 +32,8 @@ from PIL import Image
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 
 import fixtures_real as fx  # noqa: E402  (the tests' dataset writers)
-from seglocnet_jax.data import nuscenes as nu  # noqa: E402
-from seglocnet_jax.data import real_convert as rconv  # noqa: E402
+from seglocnet_jax.data.real import convert as rconv  # noqa: E402
+from seglocnet_jax.data.real import nuscenes as nu  # noqa: E402
 
 
 def textured_jpg(seed: int):

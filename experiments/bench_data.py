@@ -20,8 +20,9 @@ import numpy as np
 
 from seglocnet_jax import geometry
 from seglocnet_jax.data import loader as ld
-from seglocnet_jax.data import prepare as pp
-from seglocnet_jax.data import splits
+from seglocnet_jax.data.simulated import prepare as pp
+from seglocnet_jax.data.simulated import splits
+from seglocnet_jax.data.simulated.config import PrepareConfig
 
 CONF = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "conf")
 QUICK_FRAMES = 2000 + 300 + 300 + 300  # data=quick: train + val + test + kouvola
@@ -114,7 +115,7 @@ def main():
 def pipeline_benchmark(args):
     root = args.root or tempfile.mkdtemp(prefix="bench_data_")
     n_eval = max(args.frames // 8, args.batch)
-    cfg = pp.PrepareConfig(
+    cfg = PrepareConfig(
         name=f"bench_{args.source}",
         root=root,
         num_train=args.frames,

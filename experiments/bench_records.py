@@ -167,7 +167,7 @@ def sim_preset(name: str) -> dict:
 
 def sim_samples(preset: str, n: int) -> list[dict]:
     """``n`` frames of Helsinki rendered with a simulator preset, with priors."""
-    from seglocnet_jax.data.sim_source import SimSource
+    from seglocnet_jax.data.simulated.source import SimSource
 
     source = SimSource("helsinki", sim_preset(preset), 0)
     poses = source.drive(np.random.default_rng(0), n)
@@ -197,17 +197,15 @@ def _jpeg_bpp(images: np.ndarray, quality: int) -> float:
     return bits / (images.shape[0] * images.shape[1] * images.shape[2])
 
 
-def reference_bpp(path: str | None, hw: tuple[int, int], quality: int) -> float | None:
-    """JPEG bits per pixel of a real photograph resized to ``hw`` at ``quality``."""
+def reference_bpp(path: str | None, hw: tuple[int, int], quality: int) -> float:
+    """JPEG bits per pixel of a real photograph resized to ``hw`` at ``quality``; ``path`` None:
+    matplotlib's sample photo (matplotlib is a dependency, and it ships the photo)."""
     if path is None:
-        try:
-            import matplotlib
+        import matplotlib
 
-            path = os.path.join(matplotlib.get_data_path(), "sample_data", "grace_hopper.jpg")
-        except ImportError:
-            return None
+        path = os.path.join(matplotlib.get_data_path(), "sample_data", "grace_hopper.jpg")
     if not os.path.isfile(path):
-        return None
+        raise FileNotFoundError(f"reference photo {path} not found (--reference-photo PATH)")
     with Image.open(path) as im:
         photo = np.asarray(im.convert("RGB").resize(hw[::-1], Image.Resampling.BILINEAR))
     return _jpeg_bpp(photo[None], quality)

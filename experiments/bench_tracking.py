@@ -62,9 +62,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from seglocnet_jax import evaluation, geometry, maps, sequential, solver, tracking
+from seglocnet_jax.data.schema import BATCH_METADATA_KEYS as HOST_ONLY_KEYS
 from seglocnet_jax.model import api, synthetic
 from seglocnet_jax.model.config import preset
-from seglocnet_jax.training.step import HOST_ONLY_KEYS
 
 
 def _likelihood(cfg: tracking.TrackerConfig, belief, pose, rng) -> jax.Array:

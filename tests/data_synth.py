@@ -8,8 +8,8 @@ from types import SimpleNamespace
 import numpy as np
 
 from seglocnet_jax import geometry
-from seglocnet_jax.data import prepare as pp
-from seglocnet_jax.data import splits
+from seglocnet_jax.data.simulated import splits
+from seglocnet_jax.data.simulated.config import PrepareConfig
 from seglocnet_jax.sim import trajectory
 
 
@@ -114,7 +114,7 @@ def random_raster(seed: int = 0, size_m: float = 600.0) -> ArrayRaster:
     return ArrayRaster(mask.astype(np.uint8), grid)
 
 
-def small_config(root, **kw) -> pp.PrepareConfig:
+def small_config(root, **kw) -> PrepareConfig:
     base = dict(
         name="tiny",
         root=str(root),
@@ -132,7 +132,7 @@ def small_config(root, **kw) -> pp.PrepareConfig:
         num_val_drives=0,
         num_unseen_val_drives=0,
     )
-    return pp.PrepareConfig(**(base | kw))
+    return PrepareConfig(**(base | kw))
 
 
 class Factory:

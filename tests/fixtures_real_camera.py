@@ -28,7 +28,7 @@ import pyarrow.feather as feather
 from PIL import Image
 
 from fixtures_real import CAM_FORWARD, ROAD_Y, quat_wxyz, rot_z, write_av2_sweep
-from seglocnet_jax.data.real_common import radial_distort
+from seglocnet_jax.data.real.common import radial_distort
 from seglocnet_jax.data.schema import EGO_HEIGHT_M
 
 GROUND_Z = -EGO_HEIGHT_M["av2"]  # the road under the vehicle, in AV2's ego frame (m)

@@ -14,7 +14,8 @@ from seglocnet_jax import evaluation, maps, sim, solver
 from seglocnet_jax.app import hydra_glue
 from seglocnet_jax.app.schema import TrainConfig, build_experiment
 from seglocnet_jax.config_util import ConfigError
-from seglocnet_jax.data import loader, prepare
+from seglocnet_jax.data import loader
+from seglocnet_jax.data.simulated.config import PrepareConfig
 from seglocnet_jax.model.config import ModelConfig
 
 
@@ -37,7 +38,7 @@ def _plain(obj):
         ("solver", solver.SolverConfig(), ()),
         ("train", TrainConfig(), ()),
         ("eval", evaluation.EvalConfig(), ()),
-        ("data", prepare.PrepareConfig(), ("name", "sim")),  # name: per sim preset; sim: group
+        ("data", PrepareConfig(), ("name", "sim")),  # name: per sim preset; sim: group
     ],
 )
 def test_default_group_yaml_equals_dataclass(section, default, derived):

@@ -11,10 +11,10 @@ import pytest
 
 import fixtures_real as fx
 from seglocnet_jax import maps
-from seglocnet_jax.data import argoverse as av
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import nuscenes as nu
-from seglocnet_jax.data.real_common import RealDataError
+from seglocnet_jax.data.real import argoverse as av
+from seglocnet_jax.data.real import nuscenes as nu
+from seglocnet_jax.data.real.common import RealDataError
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 FAST = [
@@ -88,7 +88,7 @@ def test_convert_argoverse_entry_point_presets(tmp_path, capsys):
 
 def test_from_tree_names_bad_keys_and_training_adds_a_variant(tmp_path):
     from seglocnet_jax.config_util import ConfigError
-    from seglocnet_jax.data import real_convert as rconv
+    from seglocnet_jax.data.real import convert as rconv
     from seglocnet_jax.maps import MapConfig
 
     with pytest.raises(ConfigError, match="dataset.source must be one of"):

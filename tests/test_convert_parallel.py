@@ -9,9 +9,9 @@ import pytest
 
 import fixtures_real as fx
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import nuscenes as nu
-from seglocnet_jax.data import real_convert as rconv
-from seglocnet_jax.data.real_common import RealDataError
+from seglocnet_jax.data.real import convert as rconv
+from seglocnet_jax.data.real import nuscenes as nu
+from seglocnet_jax.data.real.common import RealDataError
 
 OUT_HW = (12, 20)
 

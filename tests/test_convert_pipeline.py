@@ -11,22 +11,21 @@ from shapely.geometry import LineString, Polygon
 
 import fixtures_real as fx
 from seglocnet_jax import geometry, maps
-from seglocnet_jax.data import argoverse as av
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import nuscenes as nu
-from seglocnet_jax.data import real_align as ra
-from seglocnet_jax.data import real_convert as rconv
-from seglocnet_jax.data import real_maps
 from seglocnet_jax.data.loader import LoaderConfig, make_loader
-from seglocnet_jax.data.real_common import RealDataError
+from seglocnet_jax.data.real import align_fit as ra
+from seglocnet_jax.data.real import argoverse as av
+from seglocnet_jax.data.real import convert as rconv
+from seglocnet_jax.data.real import map_rasters as real_maps
+from seglocnet_jax.data.real import nuscenes as nu
+from seglocnet_jax.data.real.alignment import AlignConfig, AlignmentError, Similarity
+from seglocnet_jax.data.real.common import RealDataError
 
 OUT_HW = (12, 20)
 SEQ_KEYS = ("sequence_id", "frame_index", "timestamp")
 # A known OSM misalignment: OSM = TRUTH^-1(dataset), so the fit must return TRUTH.
-TRUTH = ra.Similarity(
-    shift=(3.0, -2.0), rotation=math.radians(0.8), scale=1.0, centre=(200.0, 150.0)
-)
-FAST_ALIGN = ra.AlignConfig(
+TRUTH = Similarity(shift=(3.0, -2.0), rotation=math.radians(0.8), scale=1.0, centre=(200.0, 150.0))
+FAST_ALIGN = AlignConfig(
     resolution=1.0,
     max_shift=8.0,
     max_rotation_deg=1.5,
@@ -83,7 +82,7 @@ def test_similarity_fit_recovers_a_known_shift_and_rotation():
 def test_similarity_fit_recovers_a_known_scale():
     grid = geometry.RasterGrid.covering((-20.0, -40.0, 420.0, 320.0))
     target = maps.rasterize_geometries([Polygon(s, h) for s, h in fx.drivable_polygons()], grid)
-    truth = ra.Similarity(scale=1.01, centre=(200.0, 150.0))
+    truth = Similarity(scale=1.01, centre=(200.0, 150.0))
     inv = np.linalg.inv(truth.matrix())
     lines = [LineString(np.c_[r, np.ones(2)] @ inv[:2].T).buffer(4.0) for r in fx.ROADS]
     source = maps.rasterize_geometries(lines, grid)
@@ -93,7 +92,7 @@ def test_similarity_fit_recovers_a_known_scale():
     assert np.abs(fit.apply(PROBES) - truth.apply(PROBES)).max() < 0.5
     # The best scale at the end of the searched ones is refused: the truth may lie beyond.
     short = dataclasses.replace(cfg, scales=(0.99, 1.0, 1.01))
-    with pytest.raises(ra.AlignmentError, match=r"scale 1\.0100 on the search bound"):
+    with pytest.raises(AlignmentError, match=r"scale 1\.0100 on the search bound"):
         ra.fit_similarity(target, source, grid, short, progress=False)
 
 
@@ -121,7 +120,7 @@ def test_nuscenes_converts_to_records_and_rasters_the_loader_reads(tmp_path):
     }
     assert man["splits"]["val"]["cities"] == {"boston-seaport": 3}
     # The fitted correction is stored and recovers the synthetic misalignment.
-    fit = ra.Similarity.from_dict(man["alignment"]["cities"]["boston-seaport"])
+    fit = Similarity.from_dict(man["alignment"]["cities"]["boston-seaport"])
     assert np.abs(fit.apply(PROBES) - TRUTH.apply(PROBES)).max() < 0.5
     hd, sd = "hd_road-building", "sd_w8_road-building"
     assert set(man["map_variants"]) == {hd, sd}

@@ -10,9 +10,9 @@ from shapely.geometry import Point
 
 import fixtures_real as fx
 import fixtures_real_camera as fc
-from seglocnet_jax.data import argoverse as av
-from seglocnet_jax.data import nuscenes as nu
-from seglocnet_jax.data import real_common as rc
+from seglocnet_jax.data.real import argoverse as av
+from seglocnet_jax.data.real import common as rc
+from seglocnet_jax.data.real import nuscenes as nu
 from seglocnet_jax.data.schema import EGO_HEIGHT_M, check_sample
 
 OUT_HW = (12, 20)  # half the fixture's 24 x 40 images

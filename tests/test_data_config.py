@@ -7,7 +7,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from seglocnet_jax.config_util import ConfigError, from_dict
-from seglocnet_jax.data.prepare import PrepareConfig
+from seglocnet_jax.data.simulated.config import PrepareConfig
 
 CONF = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "conf"))
 

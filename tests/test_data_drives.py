@@ -11,11 +11,13 @@ import pytest
 
 from data_synth import Factory, random_raster, small_config
 from seglocnet_jax import maps
-from seglocnet_jax.data import drives as dr
 from seglocnet_jax.data import loader as ld
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import prepare as pp
-from seglocnet_jax.data import splits as sp
+from seglocnet_jax.data.simulated import drives as dr
+from seglocnet_jax.data.simulated import planning
+from seglocnet_jax.data.simulated import prepare as pp
+from seglocnet_jax.data.simulated import splits as sp
+from seglocnet_jax.data.simulated.config import PrepareConfig
 from seglocnet_jax.sim import NOMINAL_SPEED_MPS, WorldConfig
 from seglocnet_jax.sim import roads as rd
 from seglocnet_jax.sim import trajectory as tr
@@ -155,26 +157,26 @@ def test_clear_runs_are_maximal():
 )
 def test_bad_drive_config_is_named(kw, key):
     with pytest.raises(ValueError, match=key):
-        pp.PrepareConfig(**kw)
+        PrepareConfig(**kw)
 
 
 def test_split_names_follow_the_config():
-    assert pp.PrepareConfig().split_names() == [
+    assert PrepareConfig().split_names() == [
         "train", "val", "test", "kouvola", "drives", "drives_val", "drives_val_unseen"
     ]  # fmt: skip
-    no_city = pp.PrepareConfig(test_city=None)  # no test city: no drives there either
+    no_city = PrepareConfig(test_city=None)  # no test city: no drives there either
     assert no_city.split_names() == ["train", "val", "test", "drives_val"]
-    none = pp.PrepareConfig(num_drives=0, num_val_drives=0, num_unseen_val_drives=0)
+    none = PrepareConfig(num_drives=0, num_val_drives=0, num_unseen_val_drives=0)
     assert none.split_names() == ["train", "val", "test", "kouvola"]
 
 
 def test_unseen_drives_enter_the_identity_only_when_on():
     # Off, the key is not in the identity, so a dataset prepared before it existed still matches.
-    off = pp.PrepareConfig(num_unseen_val_drives=0).identity()
+    off = PrepareConfig(num_unseen_val_drives=0).identity()
     assert "num_unseen_val_drives" not in off
-    on = pp.PrepareConfig(num_unseen_val_drives=4).identity()
+    on = PrepareConfig(num_unseen_val_drives=4).identity()
     assert on.pop("num_unseen_val_drives") == 4 and on == off
-    no_city = pp.PrepareConfig(test_city=None, num_unseen_val_drives=4).identity()
+    no_city = PrepareConfig(test_city=None, num_unseen_val_drives=4).identity()
     assert "num_unseen_val_drives" not in no_city  # no test city: no such split
 
 
@@ -201,9 +203,9 @@ class RoadSource:
 
 
 def test_the_default_preset_finds_its_drives_in_the_embedded_cities():
-    cfg = pp.PrepareConfig()  # data=quick: 8 x 1 km in Kouvola, 4 clear of them, 4 in Helsinki
+    cfg = PrepareConfig()  # data=quick: 8 x 1 km in Kouvola, 4 clear of them, 4 in Helsinki
     helsinki, kouvola = RoadSource("helsinki", cfg.seed), RoadSource("kouvola", cfg.seed)
-    train, val, test = pp.plan_main_city(helsinki, cfg)
+    train, val, test = planning.plan_main_city(helsinki, cfg)
     # The pool splits' sequences are the simulator's short routes.
     assert train.sequence_ids[0].startswith("helsinki-p0-route")
     same = train.sequence_ids[1:] == train.sequence_ids[:-1]
@@ -219,7 +221,9 @@ def test_the_default_preset_finds_its_drives_in_the_embedded_cities():
     within = np.diff(drives.frame_index) == 1
     assert step[within].max() < 5.0 + 6.0  # no jumps within a drive
     # drives_val_unseen: 4 Kouvola drives clear of the drives and of the Kouvola split.
-    tested = np.concatenate([drives.poses[:, :2], pp.plan_test_city(kouvola, cfg).poses[:, :2]])
+    tested = np.concatenate(
+        [drives.poses[:, :2], planning.plan_test_city(kouvola, cfg).poses[:, :2]]
+    )
     unseen = dr.plan_val_drives(kouvola, cfg, "kouvola", tested, name=dr.UNSEEN_VAL_DRIVES)
     sp.check_disjoint({"tested": tested, "unseen": unseen.poses[:, :2]})
     counts = [int((unseen.sequence_ids == s).sum()) for s in np.unique(unseen.sequence_ids)]

@@ -13,8 +13,8 @@ from data_synth import Factory, random_raster, random_sample, small_config
 from seglocnet_jax import fileio
 from seglocnet_jax.data import loader as ld
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import prepare as pp
 from seglocnet_jax.data import records
+from seglocnet_jax.data.simulated import prepare as pp
 from seglocnet_jax.data.writer import DatasetWriter
 from seglocnet_jax.maps import MapConfig
 

@@ -12,9 +12,9 @@ from data_synth import Factory, random_raster, small_config
 from seglocnet_jax import geometry
 from seglocnet_jax.data import loader as ld
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import prepare as pp
 from seglocnet_jax.data import records
 from seglocnet_jax.data.schema import BATCH_KEYS, BATCH_METADATA_KEYS
+from seglocnet_jax.data.simulated import prepare as pp
 from seglocnet_jax.training import step as step_lib
 
 B, P = 4, 48
@@ -52,7 +52,8 @@ def test_batches_follow_the_schema(dataset):
         want = tuple(dims.get(s, s) for s in shape)
         kind_ok = batch[key].dtype.kind == "U" if dtype == "str" else batch[key].dtype == dtype
         assert kind_ok and batch[key].shape == want, key
-    assert set(BATCH_METADATA_KEYS) == set(step_lib.HOST_ONLY_KEYS)  # kept off the devices
+    on_devices = step_lib.device_batch(batch, step_lib.make_mesh(1))  # metadata stays on host
+    assert set(on_devices) == set(BATCH_KEYS) - set(BATCH_METADATA_KEYS)
     for i in range(B):
         pose, centre = batch["pose"][i], batch["tile_center"][i]
         np.testing.assert_allclose(

@@ -9,8 +9,9 @@ import pytest
 
 from data_synth import Factory, small_config
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import prepare as pp
-from seglocnet_jax.data import records, splits
+from seglocnet_jax.data import records
+from seglocnet_jax.data.simulated import prepare as pp
+from seglocnet_jax.data.simulated import splits
 
 
 def _shard_bytes(dataset_dir):

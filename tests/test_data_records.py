@@ -225,9 +225,8 @@ def test_a_paper_size_converted_record_fits_in_a_megabyte():
     back = records.decode_sample(rec)
     assert back["images"].shape == (6, 320, 800, 3) and back["lidar"].shape == sample["lidar"].shape
     # Content at least as hard for JPEG as a real photograph (matplotlib's sample photo).
-    ref = bench.reference_bpp(None, (320, 800), 95)
-    if ref is not None:
-        assert bench._jpeg_bpp(sample["images"][:1], 95) > ref
+    ref = bench.reference_bpp(None, (320, 800), 95)  # raises if the photo is missing
+    assert bench._jpeg_bpp(sample["images"][:1], 95) > ref
 
 
 def test_invalid_sample_is_refused_with_its_key():
@@ -279,8 +278,8 @@ def test_simulator_stores_png_and_compact_lidar_converters_store_jpeg(tmp_path):
     import yaml
 
     from data_synth import Factory, small_config
-    from seglocnet_jax.data import prepare as pp
-    from seglocnet_jax.data import real_convert as rconv
+    from seglocnet_jax.data.real import convert as rconv
+    from seglocnet_jax.data.simulated import prepare as pp
     from seglocnet_jax.data.writer import DatasetWriter
 
     def first_fields(ddir, split):

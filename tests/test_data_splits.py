@@ -5,7 +5,8 @@ import pytest
 
 from data_synth import GridSource
 from seglocnet_jax import geometry
-from seglocnet_jax.data import splits
+from seglocnet_jax.data.priors import seeded_priors
+from seglocnet_jax.data.simulated import splits
 
 
 def _pool(n=6000, seed=0):
@@ -59,9 +60,9 @@ def test_stripe_assignment_is_seeded_contiguous_and_sized():
 
 def test_seeded_priors_are_fixed_and_in_range():
     xy = _pool(500)[:, :2]
-    p1, p2 = splits.seeded_priors(xy, 0, 1), splits.seeded_priors(xy, 0, 1)
+    p1, p2 = seeded_priors(xy, 0, 1), seeded_priors(xy, 0, 1)
     np.testing.assert_array_equal(p1, p2)
-    assert not np.array_equal(p1, splits.seeded_priors(xy, 0, 2))
+    assert not np.array_equal(p1, seeded_priors(xy, 0, 2))
     off = p1 - xy
     assert np.abs(off).max() <= geometry.PRIOR_RANGE and np.abs(off).max() > 0.9 * 32
     assert abs(off.mean()) < 3.0

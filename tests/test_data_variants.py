@@ -11,8 +11,8 @@ from osm_synth import OsmFactory
 from seglocnet_jax import fileio, maps
 from seglocnet_jax.data import loader as ld
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import prepare as pp
 from seglocnet_jax.data import variants as vr
+from seglocnet_jax.data.simulated import prepare as pp
 
 
 @pytest.fixture

@@ -15,8 +15,8 @@ from seglocnet_jax import maps
 from seglocnet_jax.app import hydra_glue
 from seglocnet_jax.app.datasets import prepare_dataset
 from seglocnet_jax.app.schema import build_experiment
-from seglocnet_jax.data import nuscenes as nu
 from seglocnet_jax.data.loader import make_loader
+from seglocnet_jax.data.real import nuscenes as nu
 
 EXPS = sorted(
     os.path.splitext(os.path.basename(p))[0]

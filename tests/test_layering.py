@@ -27,7 +27,7 @@ ALLOWED = {
     "model": {"geometry", "solver", "losses"} | UTIL,
     "viz": {"geometry", "maps"},
     "evaluation": {"geometry", "solver", "metrics", "model", "viz", "tracking"},
-    "training": {"geometry", "model"} | UTIL,
+    "training": {"geometry", "model", "data"} | UTIL,  # data: the batch schema
     "tracking": {"geometry", "solver"},
     "sequential": {
         "geometry",
@@ -59,6 +59,14 @@ ALLOWED = {
 for _entry in ENTRY:
     ALLOWED[_entry] = {"app"}
 TRAINING_MODULES = {"__init__", "step", "state", "checkpoint", "logger"}
+# Inside data: its top level is the dataset format, below the two producers of datasets (the
+# simulator's, real ones), which never import each other. Sub-unit -> what it may import.
+DATA_FORMAT = {"geometry", "maps", "data"} | UTIL
+DATA_ALLOWED = {
+    "data": DATA_FORMAT,
+    "data.simulated": DATA_FORMAT | {"sim", "data.simulated"},
+    "data.real": DATA_FORMAT | {"solver", "data.real"},
+}
 
 
 def _modules():
@@ -90,6 +98,16 @@ def _imports(path: str, rel: list[str]):
 
 def _unit(rel: list[str]) -> str:
     return rel[0]
+
+
+def _data_unit(parts: list[str]) -> str:
+    """``parts`` of a module under seglocnet_jax -> its data sub-unit ("data", "data.real", ...),
+    or its unit outside data."""
+    if parts[0] != "data":
+        return parts[0]
+    if len(parts) > 2 or (len(parts) == 2 and os.path.isdir(os.path.join(SRC, *parts))):
+        return f"data.{parts[1]}"
+    return "data"
 
 
 def test_every_unit_has_a_layer():
@@ -124,3 +142,96 @@ def test_training_holds_only_step_state_checkpoint_and_logging():
         if n.endswith(".py")
     }
     assert names <= TRAINING_MODULES
+
+
+def test_every_data_subpackage_has_a_layer():
+    subs = {f"data.{n}" for n in os.listdir(os.path.join(SRC, "data"))}
+    subs = {s for s in subs if os.path.isdir(os.path.join(SRC, *s.split(".")))} - {
+        "data.__pycache__"
+    }
+    assert subs <= set(DATA_ALLOWED), f"add {subs - set(DATA_ALLOWED)} to DATA_ALLOWED"
+
+
+@pytest.mark.parametrize(
+    "path, rel",
+    sorted(m for m in _modules() if m[1][0] == "data"),
+    ids=lambda x: "/".join(x) if isinstance(x, list) else "",
+)
+def test_data_format_is_below_its_producers(path, rel):
+    unit = _data_unit(rel)
+    bad = [
+        name
+        for name in _imports(path, rel)
+        if name.startswith("seglocnet_jax.")
+        and _data_unit(name.split(".")[1:]) not in DATA_ALLOWED[unit]
+    ]
+    assert not bad, f"{'/'.join(rel)}.py imports {bad}; {unit} may import only {DATA_ALLOWED[unit]}"
+
+
+def _module_graph() -> dict[str, set[str]]:
+    """Dotted module -> the package's modules it imports (``from pkg import module`` resolved
+    to the module; ``from pkg import name`` to the package's ``__init__``)."""
+    names = {
+        ".".join(["seglocnet_jax", *(rel[:-1] if rel[-1] == "__init__" else rel)])
+        for _, rel in _modules()
+    }
+    graph = {}
+    for path, rel in _modules():
+        me = ".".join(["seglocnet_jax", *(rel[:-1] if rel[-1] == "__init__" else rel)])
+        tree = ast.parse(open(path).read(), path)
+        package = ["seglocnet_jax", *rel[:-1]]
+        edges = set()
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                edges |= {a.name for a in node.names}
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    base = ".".join(
+                        package[: len(package) - node.level + 1] + ([base] if base else [])
+                    )
+                for alias in node.names:
+                    sub = f"{base}.{alias.name}"
+                    edges.add(sub if sub in names else base)
+        graph[me] = {e for e in edges if e in names and e != me}
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_cycle():
+    cycles = _cycles(_module_graph())
+    assert not cycles, f"modules that import each other: {cycles}"
+
+
+def test_the_cycle_check_finds_a_cycle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]

@@ -13,18 +13,20 @@ from shapely.geometry import LineString, Polygon
 import fixtures_real as fx
 from seglocnet_jax import geometry, maps
 from seglocnet_jax.config_util import ConfigError
-from seglocnet_jax.data import argoverse as av
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import real_align as ra
-from seglocnet_jax.data import real_convert as rconv
-from seglocnet_jax.data import real_maps
-from seglocnet_jax.data.real_common import RealDataError
+from seglocnet_jax.data.real import align_fit as ra
+from seglocnet_jax.data.real import align_windows as aw
+from seglocnet_jax.data.real import argoverse as av
+from seglocnet_jax.data.real import convert as rconv
+from seglocnet_jax.data.real import map_rasters as real_maps
+from seglocnet_jax.data.real.alignment import AlignConfig, AlignmentError, Similarity
+from seglocnet_jax.data.real.common import RealDataError
 
 FAR = (3000.0, 2000.0)  # the second log's origin: 3.6 km from the first
 # OSM = TRUTH^-1(city frame): a shift and a rotation about a point between the logs, so the
 # two logs see different local shifts ((+3.7, -3.5) m and (+0.3, +1.7) m).
-TRUTH = ra.Similarity(shift=(2.0, -1.0), rotation=math.radians(0.1), centre=(1500.0, 1100.0))
-FAST = ra.AlignConfig(
+TRUTH = Similarity(shift=(2.0, -1.0), rotation=math.radians(0.1), centre=(1500.0, 1100.0))
+FAST = AlignConfig(
     resolution=1.0,
     max_shift=8.0,
     max_rotation_deg=1.0,
@@ -40,7 +42,7 @@ PIT_FRAME = maps.Projection.utm(17, origin_latlon=av.CITY_FRAMES["PIT"][1])
 LOCAL_PROBES = np.array([[40.0, 100.0], [0.0, 0.0], [250.0, 250.0], [100.0, 200.0]])
 
 
-def _inverse(sim: ra.Similarity):
+def _inverse(sim: Similarity):
     return lambda xy: np.linalg.solve(sim.matrix(), np.c_[xy, np.ones(len(xy))].T).T[:, :2]
 
 
@@ -68,7 +70,7 @@ def test_two_logs_kilometres_apart_recover_a_known_offset(tmp_path):
     ddir = rconv.convert(reader, cfg)
     man = mf.read_manifest(ddir)
     entry = man["alignment"]["cities"]["PIT"]
-    fit = ra.Similarity.from_dict(entry)
+    fit = Similarity.from_dict(entry)
     probes = np.concatenate([LOCAL_PROBES, LOCAL_PROBES + FAR])
     err = np.linalg.norm(fit.apply(probes) - TRUTH.apply(probes), axis=1)
     rot_err = math.degrees(fit.rotation - TRUTH.rotation)
@@ -93,7 +95,7 @@ def test_two_logs_kilometres_apart_recover_a_known_offset(tmp_path):
 def test_an_empty_map_window_is_refused_and_the_remedies_work(tmp_path):
     # OSM only around the first log: nothing near the second one.
     reader, cfg = _convert(tmp_path, ((0.0, 0.0),), _inverse(TRUTH))
-    with pytest.raises(ra.AlignmentError) as err:
+    with pytest.raises(AlignmentError) as err:
         rconv.convert(reader, cfg)
     msg = str(err.value)
     assert "OSM alignment of 'PIT' refused: no OSM road matches the drivable area" in msg
@@ -114,7 +116,7 @@ def test_an_empty_map_window_is_refused_and_the_remedies_work(tmp_path):
     rconv.convert(reader, dataclasses.replace(cfg, align=by_hand))
     entry = mf.read_manifest(ddir)["alignment"]["cities"]["PIT"]
     assert entry["method"] == "manual" and entry["manual"] == dict(manual, scale=1.0)
-    assert ra.Similarity.from_dict(entry).matrix() == pytest.approx(TRUTH.matrix())
+    assert Similarity.from_dict(entry).matrix() == pytest.approx(TRUTH.matrix())
     assert "[manual]" in rconv.summary(ddir)
     # The first log's SD roads are right, the second has none (half the poses on a road).
     assert entry["poses_on_road"] == {"sd_w8_road": 0.5}
@@ -129,10 +131,10 @@ def _fixture_rasters(warp, extent=(-20.0, -40.0, 420.0, 320.0), roads=fx.ROADS, 
 
 
 def test_a_peak_beyond_max_shift_is_refused_as_on_the_search_bound():
-    truth = ra.Similarity(shift=(11.0, -10.0), centre=(200.0, 150.0))
+    truth = Similarity(shift=(11.0, -10.0), centre=(200.0, 150.0))
     target, source, grid = _fixture_rasters(_inverse(truth))
     cfg = dataclasses.replace(FAST, window=512.0, max_rotation_deg=0.0)
-    with pytest.raises(ra.AlignmentError, match="peak on the search bound") as err:
+    with pytest.raises(AlignmentError, match="peak on the search bound") as err:
         ra.fit_similarity(target, source, grid, cfg, progress=False)
     assert "dataset.convert.align.max_shift=16" in str(err.value)
     # With the larger search the remedy names, the same rasters give the truth.
@@ -187,12 +189,10 @@ def test_windows_that_disagree_are_refused(tmp_path):
     al = real_maps.fit_alignment(city, drivable, FAST, False, frames, check=False)
     assert [w["status"] for w in al.windows].count("disagrees") == 1, al.windows
     assert any(p.startswith("windows disagree: 1 of 2 sharp") for p in al.problems), al.problems
-    with pytest.raises(
-        ra.AlignmentError, match="OSM alignment of 'PIT' refused: .*windows disagree"
-    ):
+    with pytest.raises(AlignmentError, match="OSM alignment of 'PIT' refused: .*windows disagree"):
         al.check()
     # Shifts that one similarity explains (a rotation about the midpoint) are accepted.
-    truth = ra.Similarity(rotation=math.radians(0.15), centre=(1540.0, 1100.0))
+    truth = Similarity(rotation=math.radians(0.15), centre=(1540.0, 1100.0))
     osm2 = str(tmp_path / "rot.osm")
     fx.write_osm(osm2, PIT_FRAME.to_lonlat, warp=_inverse(truth), origins=((0.0, 0.0), FAR))
     city2 = dataclasses.replace(maps.load_city(osm2, projection=PIT_FRAME), name="PIT")
@@ -239,7 +239,7 @@ def test_windows_lie_on_the_clusters_of_frames():
     a = rng.uniform(0, 300, (50, 2))  # fits one window
     b = rng.uniform(0, 1000, (40, 2)) + [4000.0, 0.0]  # 1 km: 2 x 2 blocks
     c = np.array([[-3000.0, 50.0]])  # a lone frame
-    placed, unchecked = ra.place_windows(np.concatenate([a, b, c]), cfg)
+    placed, unchecked = aw.place_windows(np.concatenate([a, b, c]), cfg)
     assert placed[0][1] == 50 and len(placed) == 3
     assert unchecked == 91 - sum(n for _, n in placed) and unchecked >= 1
     centres = np.array([xy for xy, _ in placed])

@@ -11,10 +11,10 @@ import pytest
 
 import fixtures_real as fx
 import fixtures_real_camera as fc
-from seglocnet_jax.data import argoverse as av
-from seglocnet_jax.data import nuscenes as nu
-from seglocnet_jax.data import real_common as rc
-from seglocnet_jax.data.real_convert import ConvertConfig
+from seglocnet_jax.data.real import argoverse as av
+from seglocnet_jax.data.real import common as rc
+from seglocnet_jax.data.real import nuscenes as nu
+from seglocnet_jax.data.real.convert import ConvertConfig
 from seglocnet_jax.data.schema import EGO_HEIGHT_M, check_sample
 
 STORED_HW = (320, 800)  # the paper's stored image size

@@ -19,11 +19,11 @@ from seglocnet_jax import tracking as tr
 from seglocnet_jax.app import eval_run, train_run
 from seglocnet_jax.app.schema import build_experiment
 from seglocnet_jax.config_util import ConfigError
-from seglocnet_jax.data import argoverse as av
-from seglocnet_jax.data import nuscenes as nu
-from seglocnet_jax.data import real_align as ra
-from seglocnet_jax.data import real_convert as rconv
 from seglocnet_jax.data.loader import LoaderConfig
+from seglocnet_jax.data.real import alignment as ra
+from seglocnet_jax.data.real import argoverse as av
+from seglocnet_jax.data.real import convert as rconv
+from seglocnet_jax.data.real import nuscenes as nu
 from seglocnet_jax.model.config import ModelConfig
 from seglocnet_jax.sequential import settings, tracks
 from seglocnet_jax.training import step as step_lib

@@ -14,9 +14,9 @@ from osm_synth import OsmFactory, write_grid_osm
 from seglocnet_jax import maps
 from seglocnet_jax.data import loader as ld
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import prepare as pp
 from seglocnet_jax.data import records
 from seglocnet_jax.data import variants as vr
+from seglocnet_jax.data.simulated import prepare as pp
 
 
 def expected_key(path) -> str:
@@ -127,7 +127,7 @@ def test_edited_user_file_is_not_silently_reused(tmp_path, user_osm):
 
 
 def test_sim_source_names_the_world_by_key(tmp_path):
-    from seglocnet_jax.data.sim_source import SimSource
+    from seglocnet_jax.data.simulated.source import SimSource
 
     path = write_grid_osm(tmp_path / "tinytown.osm", size=300.0)
     assert SimSource(path, {}, 0).world.name == maps.city_key(path)

@@ -7,6 +7,8 @@ The conventions (pinned by ``tests/test_geometry.py``):
 * Pose: ``(x, y, yaw)``; yaw is the vehicle's forward axis counterclockwise from east, radians,
   wrapped to ``(-pi, pi]``.
 * Ego frame: ``x`` forward, ``y`` left, ``z`` up (ISO 8855, nuScenes/Argoverse), metres.
+* Surround cameras: a six-camera rig (the simulator's, nuScenes') stores its images in
+  ``CAMERA_NAMES`` order, nuScenes' channels clockwise from the front.
 * Rasters: ``(C, H, W)`` at ``RESOLUTION`` m/px, row 0 at the north edge, column 0 at the west
   edge. Continuous pixel coordinates ``(row, col)`` put integer values on pixel *corners*; the
   centre of pixel ``[r, c]`` is ``(r + 0.5, c + 0.5)``.
@@ -33,6 +35,15 @@ TILE_SIZE = 256  # pixels, 128 m
 SCORE_SIZE = TILE_SIZE - BEV_SIZE + 1  # 129 valid correlation offsets per axis
 PRIOR_RANGE = 32.0  # metres: prior = GT + U[-PRIOR_RANGE, PRIOR_RANGE] per axis
 NUM_ROTATIONS = 256  # paper's K
+# The six surround cameras in record order: nuScenes' channel names, clockwise from the front.
+CAMERA_NAMES = (
+    "CAM_FRONT",
+    "CAM_FRONT_RIGHT",
+    "CAM_BACK_RIGHT",
+    "CAM_BACK",
+    "CAM_BACK_LEFT",
+    "CAM_FRONT_LEFT",
+)
 
 
 # Functions that take arrays dispatch on their type (one function, no NumPy/JAX twins): JAX

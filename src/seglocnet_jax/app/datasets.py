@@ -8,7 +8,7 @@ import os
 
 from seglocnet_jax.app.schema import ExperimentConfig
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import prepare as prepare_lib
+from seglocnet_jax.data.simulated import prepare as prepare_lib
 
 
 def prepare_dataset(cfg: ExperimentConfig) -> str:
@@ -20,7 +20,7 @@ def prepare_dataset(cfg: ExperimentConfig) -> str:
 
 
 def _prepare_real(cfg: ExperimentConfig) -> str:
-    from seglocnet_jax.data import real_convert
+    from seglocnet_jax.data.real import convert as real_convert
 
     reader_cls, reader_cfg, convert_cfg = real_convert.parse_tree(cfg.dataset)
     dataset_dir = os.path.join(convert_cfg.root, convert_cfg.name)

@@ -15,7 +15,7 @@ import math
 from seglocnet_jax import maps, metrics, solver
 from seglocnet_jax.config_util import ConfigError, from_dict
 from seglocnet_jax.data import loader as loader_lib
-from seglocnet_jax.data import prepare as prepare_lib
+from seglocnet_jax.data.simulated.config import PrepareConfig
 from seglocnet_jax.evaluation import EvalConfig
 from seglocnet_jax.model.config import ModelConfig
 from seglocnet_jax.training.checkpoint import CheckpointConfig
@@ -113,10 +113,10 @@ class TrainConfig:
 @dataclasses.dataclass(frozen=True)
 class ExperimentConfig:
     """The whole run. ``data`` is the simulator's dataset (None for real data, which ``dataset``
-    describes: ``conf/dataset/*.yaml``, validated by ``data.real_convert.parse_tree``)."""
+    describes: ``conf/dataset/*.yaml``, validated by ``data.real.convert.parse_tree``)."""
 
     name: str
-    data: prepare_lib.PrepareConfig | None
+    data: PrepareConfig | None
     map: maps.MapConfig
     loader: loader_lib.LoaderConfig
     model: ModelConfig
@@ -150,9 +150,9 @@ def build_experiment(tree: dict) -> ExperimentConfig:
     return cfg
 
 
-def _data_config(tree: dict, dataset, map_cfg) -> prepare_lib.PrepareConfig | None:
+def _data_config(tree: dict, dataset, map_cfg) -> PrepareConfig | None:
     if dataset is not None:
-        from seglocnet_jax.data import real_convert
+        from seglocnet_jax.data.real import convert as real_convert
 
         real_convert.parse_tree(dataset)  # unknown keys and bad values fail here, not later
         for section in ("data", "sim"):
@@ -175,9 +175,9 @@ def _data_config(tree: dict, dataset, map_cfg) -> prepare_lib.PrepareConfig | No
         sim = dict(sim)
         sim.pop("name", None)  # the preset's name: part of data.name through the YAML
         data["sim"] = sim
-    prep = from_dict(prepare_lib.PrepareConfig, data, "data")
+    prep = from_dict(PrepareConfig, data, "data")
     if prep.source == "sim":
-        from seglocnet_jax.data.sim_source import parse_sim_config
+        from seglocnet_jax.data.simulated.source import parse_sim_config
 
         parse_sim_config(prep.sim, "sim")  # before any simulation
     return prep
@@ -212,7 +212,7 @@ LOWER_IS_BETTER = ("APE", "AOE")
 def dataset_splits(cfg: ExperimentConfig) -> list[str] | None:
     """The splits the prepared dataset will have (None: known only from its manifest)."""
     if cfg.data is None:
-        from seglocnet_jax.data import real_convert
+        from seglocnet_jax.data.real import convert as real_convert
 
         _, _, convert_cfg = real_convert.parse_tree(cfg.dataset)
         return sorted(convert_cfg.splits)

@@ -237,7 +237,7 @@ def make_loader(
     """The loader of one split of a prepared dataset.
 
     Args:
-      dataset_dir: directory with ``manifest.json`` (see :func:`data.prepare.prepare`).
+      dataset_dir: directory with ``manifest.json`` (see :func:`data.simulated.prepare.prepare`).
       split: ``train``, ``val``, ``test``, ``kouvola``, ... (manifest ``splits``).
       map_variant: prepared variant name (``data.variants.variant_name``); ignored if
         ``rasters`` is given.

@@ -69,7 +69,7 @@ BATCH_KEYS: dict[str, tuple[str, tuple]] = {
     "frame_index": ("int64", ("B",)),
     "timestamp": ("float64", ("B",)),  # seconds
 }
-# Batch keys that stay on the host (``training.step.HOST_ONLY_KEYS`` lists the same).
+# Batch keys that stay on the host: ``training.step.device_batch`` never places them on devices.
 BATCH_METADATA_KEYS = (
     "tile_center",
     "pose",

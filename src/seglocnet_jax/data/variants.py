@@ -149,7 +149,7 @@ def load_variant(dataset_dir: str | os.PathLike, variant: str, cities) -> dict:
     if variant not in man["map_variants"]:
         raise VariantError(
             f"{mf.manifest_path(dataset_dir)}: map variant {variant!r} is not prepared (have "
-            f"{sorted(man['map_variants'])}); run data.prepare / ensure_variant for it"
+            f"{sorted(man['map_variants'])}); run data.simulated.prepare / ensure_variant for it"
         )
     out = {}
     for city in cities:

@@ -5,9 +5,9 @@
     writer.write_split("val", val_samples, len(val_samples))
     writer.close()                                      # manifest "complete": True
 
-Same records, shards and manifest as the simulator pipeline (:mod:`.prepare`), so the loader
-reads both alike. Each sample gets a seeded prior (``splits.seeded_priors``) unless it carries
-one. Re-running with the same config keeps finished shards (their samples are skipped, not
+Same records, shards and manifest as the simulator pipeline (:mod:`.simulated.prepare`), so the
+loader reads both alike. Each sample gets a seeded prior (``priors.seeded_priors``) unless it
+carries one. Re-running with the same config keeps finished shards (their samples are skipped, not
 re-encoded); another config in an existing directory is refused. Each shard's SHA-256 and size
 go into the manifest (a kept shard is hashed and compared with what the manifest recorded);
 temporary files left by a killed earlier run are removed first.
@@ -41,7 +41,7 @@ from tqdm.auto import tqdm
 
 from seglocnet_jax import fileio
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import splits as sp
+from seglocnet_jax.data.priors import seeded_priors
 from seglocnet_jax.data.records import (
     RecordError,
     count_records,
@@ -63,7 +63,7 @@ class ShardJob:
       path: absolute shard path.
       samples: the shard's samples in split order (refs when a ``load`` function is used).
       start: split position of the first sample (indexes the split's prior stream).
-      seed, stream: the prior stream (``splits.seeded_priors``).
+      seed, stream: the prior stream (``priors.seeded_priors``).
       encode: keyword arguments of ``records.encode_sample`` (the record encoding options).
     """
 
@@ -82,7 +82,7 @@ def run_shard_job(job: ShardJob, load: LoadFn | None = None) -> dict:
     returns), not on the process it runs in."""
     n = len(job.samples)
     # Priors of the whole split drawn in one stream: index by the split position.
-    priors = sp.seeded_priors(np.zeros((job.start + n, 2)), job.seed, job.stream)[job.start :]
+    priors = seeded_priors(np.zeros((job.start + n, 2)), job.seed, job.stream)[job.start :]
     recs = []
     for j, ref in enumerate(job.samples):
         sample = ref if load is None else load(ref)

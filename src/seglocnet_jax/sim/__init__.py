@@ -8,7 +8,8 @@ length_m, spacing_m)`` -> one continuous drive (:class:`Trajectory`);
 :mod:`seglocnet_jax.data.schema`.
 """
 
-from seglocnet_jax.sim.sensors import CAMERA_NAMES, SensorConfig
+from seglocnet_jax.geometry import CAMERA_NAMES
+from seglocnet_jax.sim.sensors import SensorConfig
 from seglocnet_jax.sim.simulator import Simulator
 from seglocnet_jax.sim.trajectory import (
     NOMINAL_SPEED_MPS,

@@ -16,7 +16,8 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from seglocnet_jax import geometry as g
-from seglocnet_jax.sim.sensors import CAMERA_NAMES, SensorConfig
+from seglocnet_jax.geometry import CAMERA_NAMES
+from seglocnet_jax.sim.sensors import SensorConfig
 from seglocnet_jax.sim.simulator import Simulator
 from seglocnet_jax.sim.trajectory import drive
 from seglocnet_jax.sim.world import WorldConfig, build_world

@@ -15,16 +15,8 @@ import math
 
 import numpy as np
 
-# nuScenes channel order: clockwise from the front.
-CAMERA_NAMES = (
-    "CAM_FRONT",
-    "CAM_FRONT_RIGHT",
-    "CAM_BACK_RIGHT",
-    "CAM_BACK",
-    "CAM_BACK_LEFT",
-    "CAM_FRONT_LEFT",
-)
-# (yaw deg CCW from forward, horizontal FOV deg, x m, y m) per camera, nuScenes-like placement.
+# (yaw deg CCW from forward, horizontal FOV deg, x m, y m) per camera of geometry.CAMERA_NAMES,
+# nuScenes-like placement.
 _RIG = (
     (0.0, 70.0, 1.70, 0.00),
     (-55.0, 70.0, 1.55, -0.50),

@@ -1,5 +1,5 @@
 """``Simulator(world, sensor_cfg).render(poses, seed)``: sample dicts of the 6-camera rig and the
-LiDAR at world poses (the producer samples of ``data.schema``, which ``data.sim_source``
+LiDAR at world poses (the producer samples of ``data.schema``, which ``data.simulated.source``
 validates: ``sim`` does not import ``data``).
 
 Per frame a square patch of the world raster around the pose is cut in NumPy (static size, so
@@ -75,7 +75,7 @@ class Simulator:
             cfg.pixel_noise,
             self.world.cfg.level_height,
         )  # (N*W, H, 3)
-        n, h, w = len(sn.CAMERA_NAMES), cfg.image_height, cfg.image_width
+        n, h, w = len(geometry.CAMERA_NAMES), cfg.image_height, cfg.image_width
         images = cam.to_uint8(rgb).reshape(n, w, h, 3).transpose(0, 2, 1, 3)  # (N, H, W, 3)
 
         lpos, laz, lslopes = self._lidar

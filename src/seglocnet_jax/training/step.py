@@ -15,23 +15,11 @@ import optax
 from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from seglocnet_jax.data.schema import BATCH_METADATA_KEYS
 from seglocnet_jax.training.state import TrainState
 
 # (params, batch, rng) -> (scalar loss, dict of scalar metrics)
 LossFn = Callable[[dict, dict, jax.Array], tuple[jax.Array, dict]]
-
-# Batch keys that stay on the host (float64 world coordinates, strings, sequence metadata): never
-# sent to devices. The same as data.schema.BATCH_METADATA_KEYS (tests/test_data_loader.py).
-HOST_ONLY_KEYS = (
-    "tile_center",
-    "pose",
-    "valid",
-    "sample_id",
-    "city",
-    "sequence_id",
-    "frame_index",
-    "timestamp",
-)
 
 
 def make_mesh(num_devices: int | None = None) -> jax.sharding.Mesh:
@@ -78,7 +66,7 @@ def device_batch(batch: dict, mesh: jax.sharding.Mesh, *, process_local: bool = 
     _, count = batch_shard(mesh) if process_local else (0, 1)
     out = {}
     for key, value in batch.items():
-        if key in HOST_ONLY_KEYS:
+        if key in BATCH_METADATA_KEYS:  # float64 world coordinates, strings: host only
             continue
         value = np.asarray(value)
         rows = value.shape[0] * count  # the global batch size

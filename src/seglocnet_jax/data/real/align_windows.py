@@ -1,7 +1,7 @@
 """Windows on the data for the OSM alignment: where the windows go (:func:`place_windows`: on
 clusters of frames), their grids at the working resolution (:func:`window_grids`) and the raster
 operations the fit runs in them (downsampling, warping by a similarity, the band template).
-The fit is :mod:`seglocnet_jax.data.real_align`.
+The fit is :mod:`seglocnet_jax.data.real.align_fit`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 from scipy import ndimage
 
 from seglocnet_jax import geometry
-from seglocnet_jax.data.alignment import AlignConfig, Similarity
+from seglocnet_jax.data.real.alignment import AlignConfig, Similarity
 
 
 def downsample(mask: np.ndarray, grid: geometry.RasterGrid, factor: int):

@@ -57,7 +57,7 @@ import pyarrow.feather as feather
 import shapely
 from shapely.geometry import Polygon
 
-from seglocnet_jax.data import real_common as rc
+from seglocnet_jax.data.real import common as rc
 from seglocnet_jax.data.schema import EGO_HEIGHT_M
 from seglocnet_jax.maps.projection import Projection
 

@@ -1,4 +1,4 @@
-"""The simulator as a :class:`data.prepare.FrameSource` (the embedded default producer).
+"""The simulator as a :class:`data.simulated.config.FrameSource` (the embedded default producer).
 
 Thin adapter over :mod:`seglocnet_jax.sim`: ``build_world(city, cfg, seed)``,
 ``drive(world, rng, num_frames, spacing_m)`` (``drive_routes``: with the routes), ``route(world,

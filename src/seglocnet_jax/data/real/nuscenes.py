@@ -37,18 +37,11 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
-from seglocnet_jax.data import real_common as rc
+from seglocnet_jax.data.real import common as rc
 from seglocnet_jax.data.schema import EGO_HEIGHT_M
+from seglocnet_jax.geometry import CAMERA_NAMES
 from seglocnet_jax.maps.projection import Projection
 
-CAMERAS = (
-    "CAM_FRONT",
-    "CAM_FRONT_RIGHT",
-    "CAM_BACK_RIGHT",
-    "CAM_BACK",
-    "CAM_BACK_LEFT",
-    "CAM_FRONT_LEFT",
-)
 LIDAR = "LIDAR_TOP"
 TABLES = ("scene", "log", "sample", "sample_data", "calibrated_sensor", "sensor", "ego_pose")
 # South-west reference corner (lat, lon) of each map frame (nuscenes-devkit, datasets.md).
@@ -105,7 +98,7 @@ class NuScenesConfig:
     dataroot: str = "data/nuscenes"
     version: str = "v1.0-trainval"
     image_size: tuple[int, int] = (320, 800)
-    cameras: tuple[str, ...] = CAMERAS
+    cameras: tuple[str, ...] = CAMERA_NAMES
     split_file: str | None = None
     ego_height_m: float = EGO_HEIGHT_M["nuscenes"]
 

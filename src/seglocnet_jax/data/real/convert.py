@@ -1,8 +1,8 @@
 """Real dataset -> the prepared-dataset layout the loader reads (same as the simulator's).
 
 ``convert(reader, cfg)`` writes ``<root>/<name>/`` with ``manifest.json``, ArrayRecord shards per
-split and seeded evaluation priors (through the data pipeline's :class:`.writer.DatasetWriter`)
-and the cached map rasters per city and map variant (:mod:`.real_maps`). Resumable: a shard path
+split and seeded evaluation priors (through the data pipeline's :class:`..writer.DatasetWriter`)
+and the cached map rasters per city and map variant (:mod:`.map_rasters`). Resumable: a shard path
 that exists is complete (atomic rename) and is only checked, its frames' sensors are not read
 again; a config that differs from the manifest's is refused, naming the keys.
 
@@ -24,8 +24,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data.alignment import AlignConfig, report_lines
-from seglocnet_jax.data.real_common import (
+from seglocnet_jax.data.real.alignment import AlignConfig, report_lines
+from seglocnet_jax.data.real.common import (
     Frame,
     RealDataError,
     RealReader,
@@ -179,7 +179,7 @@ def convert(reader: RealReader, cfg: ConvertConfig, *, variants: bool = True) ->
 
     Sensors go through :class:`data.writer.DatasetWriter` (the simulator pipeline's records,
     shards, manifest and seeded priors), in ``cfg.workers()`` processes; then the map variants
-    (:mod:`.real_maps`).
+    (:mod:`.map_rasters`).
     """
     dataset_dir = os.path.join(cfg.root, cfg.name)
     frames = {out: reader.frames(src) for out, src in cfg.splits.items()}
@@ -208,7 +208,7 @@ def convert(reader: RealReader, cfg: ConvertConfig, *, variants: bool = True) ->
         writer.write_split(out, [FrameRef(f) for f in fr], len(fr), load=load)
     writer.close()
     if variants:
-        from seglocnet_jax.data.real_maps import ensure_real_variants
+        from seglocnet_jax.data.real.map_rasters import ensure_real_variants
 
         poses = {}
         for f in (f for fr in frames.values() for f in fr):
@@ -232,7 +232,7 @@ def parse_tree(tree: dict, prefix: str = "dataset"):
     (``conf/dataset/*.yaml``: ``source`` (``nuscenes`` | ``av2``), ``reader`` and ``convert``
     sections), validated without touching the disk."""
     from seglocnet_jax.config_util import ConfigError, from_dict
-    from seglocnet_jax.data import argoverse, nuscenes
+    from seglocnet_jax.data.real import argoverse, nuscenes
 
     readers = {
         "nuscenes": (nuscenes.NuScenesConfig, nuscenes.NuScenesReader),

@@ -149,12 +149,3 @@ def select_evenly(n_available: int, n: int) -> np.ndarray:
     if n > n_available:
         raise SplitError(f"requested {n} frames but only {n_available} are available")
     return np.floor(np.arange(n) * (n_available / max(n, 1))).astype(np.int64)
-
-
-def seeded_priors(xy: np.ndarray, seed: int, stream: int) -> np.ndarray:
-    """Fixed evaluation priors: ``xy + U[-PRIOR_RANGE, PRIOR_RANGE]`` per axis, metres ``(N, 2)``.
-
-    ``stream`` separates splits (e.g. an index of the split name) so they draw independently.
-    """
-    xy = np.asarray(xy, np.float64).reshape(-1, 2)
-    return geometry.sample_priors(xy, np.random.default_rng([seed, stream, 0x9A1]))

@@ -1,7 +1,7 @@
 """What an OSM alignment is: its config (:class:`AlignConfig`, validated manual corrections), the
 similarity it fits, its windows, the per-city result with its quality and refusal
 (:class:`Alignment`, :class:`AlignmentError`) and the conversion-log lines of a stored one.
-The fit itself is :mod:`seglocnet_jax.data.real_align`.
+The fit itself is :mod:`seglocnet_jax.data.real.align_fit`.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from seglocnet_jax import geometry
-from seglocnet_jax.data.real_common import RealDataError
+from seglocnet_jax.data.real.common import RealDataError
 
 # Keys of AlignConfig that define the fitted values (stored in the manifest and compared on
 # resume); the acceptance thresholds and the manual corrections are not among them.

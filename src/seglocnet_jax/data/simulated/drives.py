@@ -18,7 +18,7 @@
 Records of a drive split are ordered by drive, then frame; drive ``d`` is the sequence
 ``"{city}-{split}-d{d:03d}"`` with frames ``frame_index`` 0..n-1 (``sample_id``
 ``"{city}-{split}-d{d:03d}-{i:06d}"``) and ``timestamp`` = distance from the drive's first frame
-/ ``sim.NOMINAL_SPEED_MPS``. Every frame gets a seeded prior (``splits.seeded_priors``; stream 4
+/ ``sim.NOMINAL_SPEED_MPS``. Every frame gets a seeded prior (``priors.seeded_priors``; stream 4
 for ``drives``, 5 for ``drives_val``): the first frame's is the drive's coarse start prior, and
 the others let single-frame localization run on the same frames.
 
@@ -33,7 +33,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from seglocnet_jax.data import splits as sp
+from seglocnet_jax.data.priors import seeded_priors
+from seglocnet_jax.data.simulated import splits as sp
 
 DRIVES, VAL_DRIVES, UNSEEN_VAL_DRIVES = "drives", "drives_val", "drives_val_unseen"
 # seeded_priors streams (0-3: the other splits)
@@ -77,7 +78,7 @@ def _plan(name: str, city: str, drives: list, seed: int) -> sp.SplitPlan:
         name,
         city,
         poses,
-        sp.seeded_priors(poses[:, :2], seed, DRIVE_STREAMS[name]),
+        seeded_priors(poses[:, :2], seed, DRIVE_STREAMS[name]),
         sequence_ids=np.array(seq, dtype=object),
         frame_index=np.concatenate(index),
         timestamps=np.concatenate(stamps),

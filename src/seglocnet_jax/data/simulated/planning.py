@@ -9,12 +9,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from seglocnet_jax.data import splits as sp
-from seglocnet_jax.data.splits import SplitPlan
+from seglocnet_jax.data.priors import seeded_priors
+from seglocnet_jax.data.simulated import splits as sp
+from seglocnet_jax.data.simulated.splits import SplitPlan
 from seglocnet_jax.maps import city_key
 
 if TYPE_CHECKING:
-    from seglocnet_jax.data.prepare import FrameSource, PrepareConfig
+    from seglocnet_jax.data.simulated.config import FrameSource, PrepareConfig
 
 
 def _seed(*parts: int) -> int:
@@ -103,7 +104,7 @@ def plan_main_city(source: FrameSource, cfg: PrepareConfig) -> list[SplitPlan]:
     for stream, name in enumerate(names):
         idx = avail[name][sp.select_evenly(len(avail[name]), want[name])]
         frames = pool.take(idx)
-        priors = sp.seeded_priors(frames.poses[:, :2], cfg.seed, stream)
+        priors = seeded_priors(frames.poses[:, :2], cfg.seed, stream)
         plans.append(_plan(name, key, frames, priors))
     sp.check_disjoint({p.name: p.poses[:, :2] for p in plans})
     return plans
@@ -115,5 +116,5 @@ def plan_test_city(source: FrameSource, cfg: PrepareConfig) -> SplitPlan:
     key = city_key(cfg.test_city)  # split and city named by the key (a path is no name)
     pool = _drive_pool(source, cfg.seed, 1, 0, int(np.ceil(cfg.pool_factor * n)), key)
     frames = pool.take(sp.select_evenly(len(pool.poses), n))
-    priors = sp.seeded_priors(frames.poses[:, :2], cfg.seed, 3)
+    priors = seeded_priors(frames.poses[:, :2], cfg.seed, 3)
     return _plan(key, key, frames, priors)

@@ -3,15 +3,15 @@
 Per city: OSM comes from the user's extract (``ConvertConfig.osm[city]``), read through the
 dataset's own map frame (``reader.projection(city)``: nuScenes topocentric about the map origin,
 Argoverse UTM minus the city origin) and clipped to the drivable area's surroundings. A
-similarity correction (:mod:`.real_align`) is fitted once per city by correlating the dataset's
+similarity correction (:mod:`.align_fit`) is fitted once per city by correlating the dataset's
 drivable area with the OSM road raster in windows on the city's frames (rasterized per window,
 never for the whole city), checked (a degenerate fit is refused, naming the remedies), stored in
 the manifest (``alignment``: the values, their quality per city and per window) and applied to
 every OSM geometry; ``dataset.convert.align.manual`` gives a city's correction by hand.
 HD = drivable area + corrected OSM buildings; SD = corrected OSM centrelines
 buffered to ``road_width`` + buildings. Rasters land in ``maps/<variant>/<city>.npz``
-(:func:`.variants.variant_path`: the dataset's city names are the keys) and
-``manifest.map_variants`` exactly as :mod:`.variants` writes them, so the loader reads both the
+(:func:`..variants.variant_path`: the dataset's city names are the keys) and
+``manifest.map_variants`` exactly as :mod:`..variants` writes them, so the loader reads both the
 same way.
 """
 
@@ -26,8 +26,21 @@ from shapely import affinity
 
 from seglocnet_jax import fileio, geometry, maps
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.data import real_align as ra
-from seglocnet_jax.data.real_common import RealDataError
+from seglocnet_jax.data.real.align_fit import fit_windows
+from seglocnet_jax.data.real.align_windows import (
+    downsample,
+    fine_factor,
+    place_windows,
+    window_grids,
+)
+from seglocnet_jax.data.real.alignment import (
+    AlignConfig,
+    Alignment,
+    AlignmentError,
+    Similarity,
+    Window,
+)
+from seglocnet_jax.data.real.common import RealDataError
 from seglocnet_jax.data.variants import variant_path
 
 # OSM is read this far (m) around the drivable area: a tile (64 m) around a prior (32 m) plus
@@ -62,56 +75,56 @@ def city_geometry(reader, city: str, cfg, drivable) -> maps.CityGeometry:
     return dataclasses.replace(geom, name=city)
 
 
-def _window(drivable, roads, tree, centre, frames, cfg: ra.AlignConfig) -> ra.Window:
+def _window(drivable, roads, tree, centre, frames, cfg: AlignConfig) -> Window:
     """The fit window around ``centre``: drivable area and OSM roads drawn at a fine resolution
     (<= 0.5 m) and block-averaged to ``cfg.resolution``."""
-    t_grid, _, s_grid = ra.window_grids(centre, cfg)
-    f = ra.fine_factor(cfg)
+    t_grid, _, s_grid = window_grids(centre, cfg)
+    f = fine_factor(cfg)
 
     def draw(geoms, grid):
         fine = geometry.RasterGrid(
             grid.x_min, grid.y_max, grid.height * f, grid.width * f, grid.resolution / f
         )
-        return ra.downsample(maps.rasterize_geometries(geoms, fine), fine, f)[0]
+        return downsample(maps.rasterize_geometries(geoms, fine), fine, f)[0]
 
     target = draw(shapely.clip_by_rect(drivable, *t_grid.bounds), t_grid)
     near = roads[tree.query(shapely.box(*s_grid.bounds))] if len(roads) else []
-    return ra.Window(target, t_grid, draw(list(near), s_grid), s_grid, frames)
+    return Window(target, t_grid, draw(list(near), s_grid), s_grid, frames)
 
 
 def fit_alignment(
     city: maps.CityGeometry,
     drivable,
-    cfg: ra.AlignConfig,
+    cfg: AlignConfig,
     progress: bool = True,
     points=None,
     check: bool = True,
-) -> ra.Alignment:
+) -> Alignment:
     """The correction moving ``city``'s OSM roads onto ``drivable``, with its quality.
 
     Identity when ``cfg.enabled`` is false or the city has no OSM extract; ``cfg.manual[name]``
     when given; else fitted in windows on ``points (N, 2)`` (the city's frame positions; None:
-    the drivable area's outline) by :func:`.real_align.fit_windows`, which refuses a degenerate
-    fit (:class:`.real_align.AlignmentError`) unless ``check`` is false.
+    the drivable area's outline) by :func:`.align_fit.fit_windows`, which refuses a degenerate
+    fit (:class:`.alignment.AlignmentError`) unless ``check`` is false.
     """
     name = city.name
     c = drivable.centroid
     if not cfg.enabled:
-        return ra.Alignment.identity(name, "disabled", (c.x, c.y))
+        return Alignment.identity(name, "disabled", (c.x, c.y))
     if name in cfg.manual:
-        return ra.Alignment.manual(name, cfg.manual[name])
+        return Alignment.manual(name, cfg.manual[name])
     if not city.source:
-        return ra.Alignment.identity(name, "no_osm", (c.x, c.y))
+        return Alignment.identity(name, "no_osm", (c.x, c.y))
     if points is None:
         points = shapely.get_coordinates(drivable.boundary)
-    placed, unchecked = ra.place_windows(np.asarray(points, np.float64)[:, :2], cfg)
+    placed, unchecked = place_windows(np.asarray(points, np.float64)[:, :2], cfg)
     roads = maps.buffer_roads(city, cfg.road_width) if city.roads else np.array([], object)
     tree = shapely.STRtree(roads)
     windows = [_window(drivable, roads, tree, xy, n, cfg) for xy, n in placed]
-    return ra.fit_windows(windows, cfg, name, progress, check, unchecked)
+    return fit_windows(windows, cfg, name, progress, check, unchecked)
 
 
-def apply_alignment(city: maps.CityGeometry, sim: ra.Similarity) -> maps.CityGeometry:
+def apply_alignment(city: maps.CityGeometry, sim: Similarity) -> maps.CityGeometry:
     """``city`` with every road and building moved by ``sim`` (bounds follow)."""
     params = sim.shapely_params()
     roads = tuple(
@@ -133,13 +146,13 @@ def ensure_real_variants(
 ) -> dict:
     """Fits (or reuses) each city's alignment and writes the missing variant rasters.
 
-    Returns ``{city: alignment report}`` (:meth:`.real_align.Alignment.report`: shift m,
+    Returns ``{city: alignment report}`` (:meth:`.alignment.Alignment.report`: shift m,
     rotation deg, scale, score, method, quality, windows; plus the OSM path and the manual
     entry), also stored in ``manifest.alignment``. The fit windows lie on ``poses`` (city ->
     ``(N, 3)``; without, on the drivable area). Every city that needs a fit is fitted before
-    anything is drawn or stored, and refused fits raise one :class:`.real_align.AlignmentError`
+    anything is drawn or stored, and refused fits raise one :class:`.alignment.AlignmentError`
     naming each city, so a changed search config can be tried on the same directory. A stored
-    alignment fitted with another ``dataset.convert.align`` config (:data:`.real_align.FIT_KEYS`)
+    alignment fitted with another ``dataset.convert.align`` config (:data:`.alignment.FIT_KEYS`)
     is refused, naming the keys; one fitted from another OSM extract (or none), or with another
     ``manual`` entry, is fitted again and the OSM-dependent rasters of the city are redrawn.
     With ``poses``, the report adds ``poses_on_road``: per variant, the fraction of poses on its
@@ -196,14 +209,14 @@ def ensure_real_variants(
             )
         )
     if errors:
-        raise errors[0] if len(errors) == 1 else ra.AlignmentError("\n".join(map(str, errors)))
+        raise errors[0] if len(errors) == 1 else AlignmentError("\n".join(map(str, errors)))
     for city, paths, drivable, osm, report, refitted in todo:
         if refitted:  # rasters drawn with another correction are stale
             for v in vcfgs:
                 if os.path.exists(paths[v.name]) and (v.kind == "sd" or "building" in v.channels):
                     os.remove(paths[v.name])
         reports[city] = report
-        osm = apply_alignment(osm, ra.Similarity.from_dict(report))
+        osm = apply_alignment(osm, Similarity.from_dict(report))
         for v in vcfgs:
             if os.path.exists(paths[v.name]):
                 continue
