@@ -58,7 +58,7 @@ ALLOWED = {
 }
 for _entry in ENTRY:
     ALLOWED[_entry] = {"app"}
-TRAINING_MODULES = {"__init__", "step", "state", "checkpoint", "logger"}
+TRAINING_MODULES = {"__init__", "step", "state", "checkpoint", "checksums", "logger"}
 
 
 def _modules():
