@@ -63,10 +63,10 @@ def run_a(drives_data_root, tmp_path_factory):
     return workdir
 
 
-def _eval_dir(*overrides):
+def _eval_dir(*overrides, app="evaluate"):
     hydra_glue.register_resolvers()
     with initialize_config_dir(config_dir=hydra_glue.conf_dir(), version_base="1.3"):
-        cfg = compose("evaluate", list(overrides), return_hydra_config=True)
+        cfg = compose(app, list(overrides), return_hydra_config=True)
         return str(OmegaConf.select(cfg, "hydra.run.dir"))
 
 
@@ -91,6 +91,9 @@ def test_two_checkpoints_get_two_directories_and_never_share_a_set(
     assert "_sequential_" in dirs["a_seq"]
     assert os.path.basename(dirs["gt"]).startswith("eval_gt_both_")
     assert "_hd_road-building_" in dirs["gt"] and "_sd_w10.0_road-building_" in dirs["gt_sd"]
+    # Training runs too: HD maps ignore the road width, so HD names carry none.
+    assert "_hd_road-building_" in _eval_dir("map.road_width=5", app="config")
+    assert "_sd_w5_road-building_" in _eval_dir("map=sd", "map.road_width=5", app="config")
 
     # Two checkpoints into one directory: the second set replaces the first whole.
     workdir = str(tmp_path / "eval")
