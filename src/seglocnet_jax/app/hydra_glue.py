@@ -44,17 +44,23 @@ def map_dir(kind: str, road_width, channels) -> str:
 def eval_source(bev_source: str, checkpoint) -> str:
     """What an evaluation localizes with, for its directory's name: ``gt``, or the checkpoint
     step it restores, ``<run directory name>-step<N>`` (verified: the step the evaluation will
-    restore, :func:`seglocnet_jax.training.checkpoint.resolve`)."""
+    restore, :func:`seglocnet_jax.training.checkpoint.resolve`). A missing or unusable
+    checkpoint exits with its message."""
     if bev_source == "gt":
         return "gt"
     from seglocnet_jax.training import checkpoint as ckpt_lib
 
+    # Hydra resolves the run directory before the app starts and cannot format an error raised
+    # here: the message and exit status 1 instead of a traceback through Hydra's internals.
     if not checkpoint:
-        raise ckpt_lib.CheckpointError(
-            "checkpoint=PATH is required with eval.bev_source=model (a run directory, its "
-            "checkpoints/best, or one step directory); eval.bev_source=gt needs none"
+        raise SystemExit(
+            "error: checkpoint=PATH is required with eval.bev_source=model (a run directory, "
+            "its checkpoints/best, or one step directory); eval.bev_source=gt needs none"
         )
-    return ckpt_lib.resolve(str(checkpoint)).name
+    try:
+        return ckpt_lib.resolve(str(checkpoint)).name
+    except ckpt_lib.CheckpointError as err:
+        raise SystemExit(f"error: {err}") from None
 
 
 def register_resolvers() -> None:
