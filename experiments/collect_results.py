@@ -31,11 +31,13 @@ def _overrides(job_dir: str) -> list[str]:
     """The overrides that made the job: an evaluation's own record (``config.json``; Hydra's
     ``.hydra/`` is rewritten by any later command in the directory), else Hydra's."""
     config = os.path.join(job_dir, evalset.RUN_CONFIG)
-    if os.path.exists(config):
+    try:
         with open(config) as f:
             recorded = (json.load(f).get("evaluation") or {}).get("overrides")
-        if recorded is not None:
-            return list(recorded)
+    except (OSError, ValueError, AttributeError):  # none, or not an evaluation's
+        recorded = None
+    if recorded is not None:
+        return list(recorded)
     path = os.path.join(job_dir, ".hydra", "overrides.yaml")
     if not os.path.exists(path):
         return [os.path.basename(job_dir)]
