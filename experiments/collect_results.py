@@ -4,9 +4,12 @@ ablations (one row per job: its overrides, then the localization metrics of each
     python experiments/collect_results.py multirun/sim_helsinki_sd [--split test] [--allow-failed]
 
 Each job directory holds ``.hydra/overrides.yaml`` and, once it finished, ``results.json``
-(written by ``seglocnet_jax.train`` / ``evaluate``). A job without ``results.json`` (it crashed
-or has not finished) gets a FAILED row and, below the table, its directory and the last lines of
-its log; the script then exits with status 1 unless ``--allow-failed`` is given.
+(written by ``seglocnet_jax.train`` / ``evaluate``; an evaluation's ``config.json`` records its
+own overrides, which name its row). A job without ``results.json`` (it crashed or has not
+finished), or whose evaluation set is incomplete (``INCOMPLETE``: cut off while moving into
+place, its files may mix two evaluations), gets a FAILED row and, below the table, its directory
+and the reason and the last lines of its log; the script then exits with status 1 unless
+``--allow-failed`` is given. Sets moved aside (``*.discarded-*``) are not read.
 """
 
 from __future__ import annotations
@@ -18,12 +21,23 @@ import os
 import sys
 
 from seglocnet_jax import metrics
+from seglocnet_jax.app import evalset
 
 RESULTS = "results.json"
 LOG_LINES = 5
 
 
 def _overrides(job_dir: str) -> list[str]:
+    """The overrides that made the job: an evaluation's own record (``config.json``; Hydra's
+    ``.hydra/`` is rewritten by any later command in the directory), else Hydra's."""
+    config = os.path.join(job_dir, evalset.RUN_CONFIG)
+    try:
+        with open(config) as f:
+            recorded = (json.load(f).get("evaluation") or {}).get("overrides")
+    except (OSError, ValueError, AttributeError):  # none, or not an evaluation's
+        recorded = None
+    if recorded is not None:
+        return list(recorded)
     path = os.path.join(job_dir, ".hydra", "overrides.yaml")
     if not os.path.exists(path):
         return [os.path.basename(job_dir)]
@@ -32,15 +46,15 @@ def _overrides(job_dir: str) -> list[str]:
 
 
 def find_jobs(root: str) -> list[str]:
-    """Job directories under ``root``: those with a ``.hydra`` directory or a ``results.json``
-    (their own subdirectories are not searched)."""
+    """Job directories under ``root``: those with a ``.hydra`` directory, a ``results.json`` or
+    an ``INCOMPLETE`` set (their own subdirectories, and sets moved aside, are not searched)."""
     jobs = []
     for dirpath, dirnames, files in os.walk(root):
-        if ".hydra" in dirnames or RESULTS in files:
+        if ".hydra" in dirnames or RESULTS in files or evalset.INCOMPLETE in files:
             jobs.append(dirpath)
             dirnames[:] = []
         else:
-            dirnames.sort()
+            dirnames[:] = sorted(d for d in dirnames if not evalset.is_aside(d))
     return sorted(jobs)
 
 
@@ -57,6 +71,12 @@ def log_tail(job_dir: str, n: int = LOG_LINES) -> list[str]:
 def _failure(job_dir: str) -> str | None:
     """Why a job has no usable results (None: it has)."""
     path = os.path.join(job_dir, RESULTS)
+    marker = evalset.incomplete(job_dir)
+    if marker is not None:
+        return (
+            f"incomplete evaluation set ({marker}): it was cut off while moving into place and "
+            "its files may mix two evaluations; rerun the job"
+        )
     if not os.path.exists(path):
         return f"no {RESULTS} (the job crashed or has not finished)"
     try:

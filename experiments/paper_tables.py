@@ -9,7 +9,9 @@
 Each job is one ``python -m seglocnet_jax.train`` (or ``evaluate`` for the GT rows) with the
 overrides listed in :data:`JOBS` plus ``+budget=<budget>`` (``conf/budget/``); its run directory
 is the app's default one, so the main job (``python -m seglocnet_jax.train``) is the HD row.
-A job whose ``results.json`` exists is not rerun; an interrupted one resumes from its checkpoint.
+A job whose ``results.json`` exists is not rerun; an interrupted one resumes from its checkpoint;
+one whose evaluation set was cut off while moving into place (``INCOMPLETE``) is rerun, and
+storing it is refused.
 ``--extra`` appends overrides to every job (the tests run the set on a tiny dataset that way;
 ``--root`` then gives the jobs their own directories).
 
@@ -91,7 +93,8 @@ def job_overrides(
 
 
 def run_dir(job: Job, budget: str, extra=(), root: str | None = None) -> str:
-    """The job's run directory (the app's default, or ``<root>/<job>``)."""
+    """The job's run directory (the app's default, or ``<root>/<job>``). An evaluation's
+    default directory names ``eval.mode``; a training run's does not."""
     if root:
         return os.path.join(root, job.name)
     from hydra import compose, initialize_config_dir
@@ -102,7 +105,7 @@ def run_dir(job: Job, budget: str, extra=(), root: str | None = None) -> str:
     hydra_glue.register_resolvers()
     name = "config" if job.app == "train" else "evaluate"
     with initialize_config_dir(config_dir=hydra_glue.conf_dir(), version_base="1.3"):
-        overrides = job_overrides(job, budget, extra, single=False)
+        overrides = job_overrides(job, budget, extra, single=job.app == "evaluate")
         cfg = compose(name, overrides, return_hydra_config=True)
         return str(OmegaConf.select(cfg, "hydra.run.dir"))
 
@@ -156,7 +159,10 @@ def store_result(job: Job, budget: str, rdir: str, store: str) -> str:
     """Copies ``<rdir>/results.json`` into ``<store>/<job>.json`` (atomic) with the command
     that ran it (:func:`ran_command`), run directory and commit; an entry holding the same
     results keeps its commit and run directory (only a command stored wrongly by an older
-    version of this script is corrected)."""
+    version of this script is corrected). An incomplete evaluation set is refused."""
+    reason = incomplete_set(rdir)
+    if reason is not None:
+        raise ValueError(reason)
     with open(os.path.join(rdir, "results.json")) as f:
         res = json.load(f)
     path = os.path.join(store, f"{job.name}.json")
@@ -184,6 +190,20 @@ def store_result(job: Job, budget: str, rdir: str, store: str) -> str:
     return path
 
 
+def incomplete_set(rdir: str) -> str | None:
+    """Why ``rdir``'s results cannot be stored (None: they can): its evaluation set was cut
+    off while moving into place (``INCOMPLETE``), so its files may mix two evaluations."""
+    from seglocnet_jax.app import evalset
+
+    marker = evalset.incomplete(rdir)
+    if marker is None:
+        return None
+    return (
+        f"{marker}: the evaluation set of {rdir} is incomplete (cut off while moving into "
+        "place; its files may mix two evaluations); rerun the job"
+    )
+
+
 def run(jobs, budget: str, extra=(), root=None, store: str | None = None) -> int:
     """Runs the jobs in order (each its own process, log in ``<run dir>/paper_job.log``) and
     stores each finished one (:func:`store_result`); returns the number that failed. Finished
@@ -192,7 +212,10 @@ def run(jobs, budget: str, extra=(), root=None, store: str | None = None) -> int
     failed = 0
     for i, job in enumerate(jobs):
         rdir = run_dir(job, budget, extra, root)
-        if os.path.exists(os.path.join(rdir, "results.json")):
+        cut = incomplete_set(rdir)
+        if cut is not None:
+            print(f"[paper] {i + 1}/{len(jobs)} {job.name}: {cut}", flush=True)
+        elif os.path.exists(os.path.join(rdir, "results.json")):
             print(f"[paper] {i + 1}/{len(jobs)} {job.name}: done ({rdir})", flush=True)
             print(f"[paper] stored {store_result(job, budget, rdir, store)}", flush=True)
             continue

@@ -9,6 +9,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
+from apphelpers import TINY, app_tree
 from seglocnet_jax import evaluation
 from seglocnet_jax.app import eval_run, train_run
 from seglocnet_jax.app.schema import build_experiment
@@ -18,47 +19,24 @@ from seglocnet_jax.training import step as step_lib
 
 
 @pytest.fixture(scope="module")
-def data_root(tmp_path_factory):
-    return str(tmp_path_factory.mktemp("app_data"))
+def data_root(tiny_data_root):
+    return tiny_data_root
 
 
 def _tree(data_root, **train):
-    return {
-        "name": "app_test",
-        "data": {
-            "name": "tiny",
-            "root": data_root,
-            "test_city": None,
-            "num_val_drives": 0,  # no drive splits: not rendered
-            "num_train": 16,
-            "num_val": 8,
-            "num_test": 8,
-            "shard_size": 8,
-            "render_batch": 8,
-        },
-        "map": {"kind": "hd"},
-        "loader": {"max_points": 4096, "num_threads": 0},
-        "model": {"modality": "lidar"},
-        "solver": {"num_rotations": 64},
-        "train": {
-            "batch_size": 2,
-            "num_steps": 4,
-            "num_devices": 1,
-            "eval_every": 0,
-            "val_batches": 1,
-            "log_every": 1,
-            "optim": {"warmup_steps": 1, "learning_rate": 1e-3},
-            "checkpoint": {"every_steps": 2},
-            **train,
-        },
-        "eval": {
+    return app_tree(
+        data_root,
+        "app_test",
+        TINY,
+        train={"num_steps": 4, "optim": {"warmup_steps": 1, "learning_rate": 1e-3}, **train},
+        eval_={
             "mode": "single",  # no drive splits here: tests/test_sequential.py tracks drives
             "splits": ["test"],
             "num_figures": 1,
             "batch_size": 4,
             "max_batches": 1,
         },
-    }
+    )
 
 
 def _final_params(workdir):

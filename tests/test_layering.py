@@ -58,7 +58,7 @@ ALLOWED = {
 }
 for _entry in ENTRY:
     ALLOWED[_entry] = {"app"}
-TRAINING_MODULES = {"__init__", "step", "state", "checkpoint", "logger"}
+TRAINING_MODULES = {"__init__", "step", "state", "checkpoint", "checksums", "logger"}
 # Inside data: its top level is the dataset format, below the two producers of datasets (the
 # simulator's, real ones), which never import each other. Sub-unit -> what it may import.
 DATA_FORMAT = {"geometry", "maps", "data"} | UTIL

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import fixtures_real as fx
+from apphelpers import DRIVES_EVAL, TINY_DRIVES, app_tree
 from seglocnet_jax import evaluation, geometry, maps, sequential, solver
 from seglocnet_jax import tracking as tr
 from seglocnet_jax.app import eval_run, train_run
@@ -606,52 +607,25 @@ def test_summary_follows_the_documented_definitions():
 
 
 @pytest.fixture(scope="module")
-def data_root(tmp_path_factory):
-    return str(tmp_path_factory.mktemp("seq_data"))
+def data_root(drives_data_root):
+    return drives_data_root
 
 
 def _tree(data_root, **eval_):
-    return {
-        "name": "seq_test",
-        "data": {
-            "name": "tiny_seq",
-            "root": data_root,
-            "test_city": None,
-            "num_train": 4,
-            "num_val": 4,
-            "num_test": 4,
-            "shard_size": 8,
-            "render_batch": 8,
-            "num_val_drives": 2,  # drives_val: two short Helsinki drives
-            "drive_length_m": 30.0,  # 4-7 frames each
-            "min_val_drive_m": 15.0,
-        },
-        "map": {"kind": "hd"},
-        "loader": {"max_points": 4096, "num_threads": 0},
-        "model": {"modality": "lidar"},
-        "solver": {"num_rotations": 64},
-        "train": {
-            "batch_size": 2,
-            "num_steps": 2,
-            "num_devices": 1,
-            "eval_every": 0,
-            "val_batches": 1,
-            "log_every": 1,
-            "optim": {"warmup_steps": 1},
-            "checkpoint": {"every_steps": 2},
-        },
-        "eval": {
+    return app_tree(
+        data_root,
+        "seq_test",
+        TINY_DRIVES,
+        eval_={
             "mode": "sequential",
             "splits": ["test"],
-            "sequential_splits": ["drives_val"],
-            "calibration_split": "drives_val",
-            "temperature_drives": "drives_val",  # no test city here: no drives_val_unseen
+            **DRIVES_EVAL,
             "batch_size": 2,
             "num_figures": 1,
             "max_batches": 1,
             **eval_,
         },
-    }
+    )
 
 
 def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, capsys):

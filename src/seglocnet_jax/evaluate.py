@@ -1,6 +1,7 @@
 """``python -m seglocnet_jax.evaluate [+exp=NAME] checkpoint=PATH``: metrics JSON, the table and
 figures of the evaluation splits. ``eval.bev_source=gt`` gives the GT-segmentation upper bound
-and needs no checkpoint. Logic: ``app.eval_run``."""
+and needs no checkpoint. The default directory names the checkpoint (run and step) and the
+settings that change the numbers (conf/evaluate.yaml). Logic: ``app.eval_run``."""
 
 import hydra
 from omegaconf import DictConfig
@@ -21,7 +22,9 @@ def main(cfg: DictConfig) -> None:
     hydra_glue.maybe_initialize_distributed()
     tree = hydra_glue.to_tree(cfg)
     checkpoint = tree.pop("checkpoint", None)
-    run_evaluation(build_experiment(tree), checkpoint, HydraConfig.get().runtime.output_dir)
+    hc = HydraConfig.get()
+    overrides = [str(o) for o in hc.overrides.task]
+    run_evaluation(build_experiment(tree), checkpoint, hc.runtime.output_dir, overrides)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ an error naming that pid.
 from __future__ import annotations
 
 import contextlib
+import datetime
 import errno
 import fcntl
 import json
@@ -67,7 +68,20 @@ def write_json_atomic(path: str | os.PathLike, obj, *, indent: int = 1, sort_key
     write_text_atomic(path, json.dumps(obj, indent=indent, sort_keys=sort_keys) + "\n")
 
 
-def _pid_alive(pid: int) -> bool:
+def discarded_path(path: str | os.PathLike) -> str:
+    """A free name ``<path>.discarded-<UTC time>[-n]`` to move ``path`` aside to (what a restart
+    or a new evaluation replaces is kept there, never deleted)."""
+    path = os.path.abspath(os.fspath(path))
+    stamp = datetime.datetime.now(datetime.UTC).strftime("%Y%m%dT%H%M%SZ")
+    dest = f"{path}.discarded-{stamp}"
+    n = 1
+    while os.path.exists(dest):
+        dest = f"{path}.discarded-{stamp}-{n}"
+        n += 1
+    return dest
+
+
+def pid_alive(pid: int) -> bool:
     if pid <= 0:
         return False
     try:
@@ -90,7 +104,7 @@ def clean_stale_tmp(directory: str | os.PathLike, *, recursive: bool = True) -> 
     for root, _, files in walker:
         for name in files:
             m = _TMP_RE.search(name)
-            if m is None or _pid_alive(int(m.group(1))):
+            if m is None or pid_alive(int(m.group(1))):
                 continue
             path = os.path.join(root, name)
             with contextlib.suppress(FileNotFoundError):

@@ -34,11 +34,44 @@ def safe_dirname(name: str) -> str:
     )
 
 
+def map_dir(kind: str, road_width, channels) -> str:
+    """The map part of a run directory's name: ``hd_road-building`` (HD maps ignore the road
+    width), ``sd_w10.0_road-building``."""
+    width = f"_w{road_width}" if kind == "sd" else ""
+    return f"{kind}{width}_{'-'.join(str(c) for c in channels)}"
+
+
+def eval_source(bev_source: str, checkpoint) -> str:
+    """What an evaluation localizes with, for its directory's name: ``gt``, or the checkpoint
+    step it restores, ``<run directory name>-step<N>`` (verified: the step the evaluation will
+    restore, :func:`seglocnet_jax.training.checkpoint.resolve`). A missing or unusable
+    checkpoint exits with its message."""
+    if bev_source == "gt":
+        return "gt"
+    from seglocnet_jax.training import checkpoint as ckpt_lib
+
+    # Hydra resolves the run directory before the app starts and cannot format an error raised
+    # here: the message and exit status 1 instead of a traceback through Hydra's internals.
+    if not checkpoint:
+        raise SystemExit(
+            "error: checkpoint=PATH is required with eval.bev_source=model (a run directory, "
+            "its checkpoints/best, or one step directory); eval.bev_source=gt needs none"
+        )
+    try:
+        return ckpt_lib.resolve(str(checkpoint)).name
+    except ckpt_lib.CheckpointError as err:
+        raise SystemExit(f"error: {err}") from None
+
+
 def register_resolvers() -> None:
     if not OmegaConf.has_resolver("join"):
         OmegaConf.register_new_resolver("join", lambda xs: "-".join(str(x) for x in xs))
     if not OmegaConf.has_resolver("dirname"):
         OmegaConf.register_new_resolver("dirname", safe_dirname)
+    if not OmegaConf.has_resolver("map_dir"):
+        OmegaConf.register_new_resolver("map_dir", map_dir)
+    if not OmegaConf.has_resolver("eval_source"):
+        OmegaConf.register_new_resolver("eval_source", eval_source, use_cache=True)
 
 
 def to_tree(cfg: DictConfig) -> dict:

@@ -16,13 +16,13 @@ import os
 import time
 
 from seglocnet_jax import fileio, metrics
+from seglocnet_jax.app import evalset
+from seglocnet_jax.app.evalset import RESULTS, RUN_CONFIG
 from seglocnet_jax.app.schema import ExperimentConfig
 from seglocnet_jax.config_util import ConfigError
 from seglocnet_jax.training import checkpoint as ckpt_lib
 
-RUN_CONFIG = "config.json"
-RESULTS = "results.json"
-ARCHIVED_WITH_CHECKPOINTS = (RUN_CONFIG, RESULTS, "metrics.jsonl", "tb", "figures")
+ARCHIVED_WITH_CHECKPOINTS = (RUN_CONFIG, "metrics.jsonl", "tb", *evalset.TRAIN_ITEMS)
 
 # Flattened keys that do not define a run (prefix match on whole key components).
 NOT_DEFINING = (
@@ -59,17 +59,19 @@ def flatten(tree, prefix: str = "") -> dict:
     return {prefix: tree}
 
 
-def _defining(flat: dict) -> dict:
+def _defining(flat: dict, skip: tuple[str, ...]) -> dict:
     def keep(key):
-        return not any(key == p or key.startswith(p + ".") for p in NOT_DEFINING)
+        return not any(key == p or key.startswith(p + ".") for p in skip)
 
     return {k: v for k, v in flat.items() if keep(k)}
 
 
-def config_diff(stored: dict, current: dict, only: str | None = None) -> list[str]:
+def config_diff(
+    stored: dict, current: dict, only: str | None = None, skip: tuple[str, ...] = NOT_DEFINING
+) -> list[str]:
     """``key: stored -> current`` lines for the defining keys that differ (``only``: a prefix
-    such as ``"model"``)."""
-    a, b = _defining(flatten(stored)), _defining(flatten(current))
+    such as ``"model"``; ``skip``: the key prefixes that define nothing)."""
+    a, b = _defining(flatten(stored), skip), _defining(flatten(current), skip)
     lines = []
     for key in sorted(set(a) | set(b)):
         if only and not (key == only or key.startswith(only + ".")):
@@ -163,15 +165,17 @@ class RunDir:
 
     def archive(self, what: str) -> str | None:
         """Moves the checkpoints aside (``checkpoints.discarded-<time>``) and with them the
-        old run's logs, figures and results (``.../run_files``): nothing is lost, nothing is
-        relabelled by the new run."""
+        old run's logs and its evaluation sets, the current one and those moved aside
+        (``.../run_files``): nothing is lost, nothing is relabelled by the new run."""
         moved = ckpt_lib.archive_checkpoints(self.workdir)
         if moved is None:
             return None
         keep = os.path.join(moved, "run_files")
-        for name in ARCHIVED_WITH_CHECKPOINTS:
+        names = [*ARCHIVED_WITH_CHECKPOINTS, evalset.INCOMPLETE]
+        names += [n for n in os.listdir(self.workdir) if n.startswith(evalset.DISCARDED + ".")]
+        for name in names:
             src = os.path.join(self.workdir, name)
-            if os.path.exists(src):
+            if os.path.lexists(src):
                 os.makedirs(keep, exist_ok=True)
                 os.rename(src, os.path.join(keep, name))
         progress(f"train.restart=true: moved {what} (checkpoints, logs, results) to {moved}")
@@ -215,7 +219,8 @@ def check_checkpoint_compatible(checkpoint: str, cfg: ExperimentConfig) -> None:
 
 
 def write_results(workdir: str, cfg: ExperimentConfig, results: dict, extra: dict) -> str:
-    """``<workdir>/results.json`` (atomic), with the config that produced the numbers."""
+    """``<workdir>/results.json`` (atomic), with the config that produced the numbers
+    (``workdir``: the staging directory of an :class:`evalset.OutputSet`)."""
     path = os.path.join(workdir, RESULTS)
     payload = {
         "experiment": cfg.name,

@@ -14,10 +14,11 @@ import numpy as np
 from tqdm import tqdm
 
 from seglocnet_jax import evaluation, sequential
-from seglocnet_jax.app import runs
+from seglocnet_jax.app import evalset, runs
 from seglocnet_jax.app.datasets import prepare_dataset
 from seglocnet_jax.app.schema import ExperimentConfig
 from seglocnet_jax.data import loader as loader_lib
+from seglocnet_jax.data import manifest as manifest_lib
 from seglocnet_jax.model import api as model_api
 from seglocnet_jax.training import checkpoint as ckpt_lib
 from seglocnet_jax.training import state as state_lib
@@ -58,12 +59,32 @@ class Evaluator:
             )
         return self._loaders[split]
 
+    def final_splits(self) -> list[str]:
+        """Every split the final evaluation (``eval.mode``) reads."""
+        ev = self.cfg.eval
+        names = list(ev.splits) if ev.single else []
+        if ev.sequential:
+            names += ev.tracked_splits()
+            if ev.temperature is None:
+                names.append(ev.temperature_split)
+                names += [ev.temperature_drives] if ev.temperature_drives else []
+        return list(dict.fromkeys(names))
+
+    def verify(self) -> None:
+        """Checks every split of the final evaluation (record counts, each shard's SHA-256)
+        before any work: a damaged shard of the last split read stops the run at its start."""
+        man = manifest_lib.read_manifest(self.dataset_dir)
+        for split in self.final_splits():
+            manifest_lib.verify_split(man, self.dataset_dir, split)
+
     def place(self, batch: dict) -> dict:
         # Evaluation loaders are not sharded: every process reads the whole batch (the metrics
         # compare device outputs with the host rows of the whole batch).
         return step_lib.device_batch(batch, self.mesh, process_local=False)
 
-    def __call__(self, params, splits, *, max_batches=None, num_figures=0, tag="") -> dict:
+    def __call__(
+        self, params, splits, *, max_batches=None, num_figures=0, tag="", out_dir=None
+    ) -> dict:
         t0 = time.time()
         out = {}
         for split in splits:
@@ -78,16 +99,19 @@ class Evaluator:
                 place=self.place,
                 desc=f"eval {split}{tag}",
                 channels=self.cfg.map.channels,
-                figure_dir=os.path.join(self.workdir, "figures", split) if num_figures else None,
+                figure_dir=os.path.join(out_dir or self.workdir, "figures", split)
+                if num_figures
+                else None,
                 num_figures=num_figures,
             )
         self.seconds += time.time() - t0
         self.rounds += 1
         return out
 
-    def sequential(self, params) -> dict:
+    def sequential(self, params, out_dir: str) -> dict:
         """Tracks the drives of ``eval.sequential_splits`` (and the calibration split) through
-        the same localize step; ``{split: summary}`` (:mod:`seglocnet_jax.sequential`)."""
+        the same localize step; ``{split: summary}`` (:mod:`seglocnet_jax.sequential`); arrays
+        and figures under ``out_dir``."""
         ev = self.cfg.eval
 
         def temperature_batches():
@@ -107,21 +131,27 @@ class Evaluator:
             num_rotations=self.cfg.solver.num_rotations,
             place=self.place,
             temperature_batches=temperature_batches,
-            output_dir=self.workdir,
+            output_dir=out_dir,
         )
         runs.progress(f"sequential evaluation: {time.time() - t0:.0f} s")
         return out
 
-    def final(self, params, logger=None, step: int = 0) -> tuple[dict, dict | None]:
+    def final(self, params, out_dir: str, logger=None, step: int = 0) -> tuple[dict, dict | None]:
         """The final evaluation of ``eval.mode``: ``(single-frame results by split, sequential
-        results by split or None)``, logged to ``logger`` at ``step``."""
+        results by split or None)``, logged to ``logger`` at ``step``; figures and arrays under
+        ``out_dir`` (an :class:`evalset.OutputSet`'s staging directory)."""
         ev = self.cfg.eval
+        self.verify()
         results = {}
         if ev.single:
             results = self(
-                params, ev.splits, max_batches=ev.max_batches, num_figures=ev.num_figures
+                params,
+                ev.splits,
+                max_batches=ev.max_batches,
+                num_figures=ev.num_figures,
+                out_dir=out_dir,
             )
-        seq = self.sequential(params) if ev.sequential else None
+        seq = self.sequential(params, out_dir) if ev.sequential else None
         if logger is not None:
             for split, res in results.items():
                 logger.write(step, split, res)
@@ -185,6 +215,7 @@ def _train(cfg: ExperimentConfig, run: runs.RunDir) -> dict:
     train_step = step_lib.make_train_step(model_api.make_loss_fn(cfg.model), optimizer, mesh)
     logger = MetricsLogger(workdir, enabled=jax.process_index() == 0, resume_step=step)
     evaluate = Evaluator(cfg, dataset_dir, mesh, workdir)
+    evaluate.verify()  # the final evaluation's splits, before training
     t_train0 = time.time()
     bar = tqdm(total=cfg.train.num_steps, initial=step, desc="train", unit="step")
     t_last, n_last = time.time(), step
@@ -221,28 +252,42 @@ def _train(cfg: ExperimentConfig, run: runs.RunDir) -> dict:
     bar.close()
     ckpt.close()
     t_loop = time.time() - t_train0
-    t_val = evaluate.seconds
-    # The final splits are evaluated with the best checkpoint by validation (as `evaluate` does).
-    best, best_step = ckpt_lib.restore_params(ckpt.best_dir, jax.device_get(state))
+    times = {
+        "data_preparation_s": t_data,
+        "training_s": t_loop - evaluate.seconds,
+        "validation_s": evaluate.seconds,
+    }
+    return _final_evaluation(
+        cfg, evaluate, ckpt.best_dir, jax.device_get(state), logger, step, times, t_start
+    )
+
+
+def _final_evaluation(cfg, evaluate, best_dir, target, logger, step, times, t_start) -> dict:
+    """The final splits, evaluated with the best checkpoint by validation (as ``evaluate``
+    does), written as one set (:class:`evalset.OutputSet`) with the run's timing."""
+    best, best_step = ckpt_lib.restore_params(best_dir, target)
     progress(
         f"evaluating the best checkpoint by validation {cfg.train.checkpoint.best_metric}: "
         f"step {best_step}"
     )
     t_final0 = time.time()
-    results, seq = evaluate.final(step_lib.replicate(best.params, mesh), logger, step)
-    t_final = time.time() - t_final0
-    logger.close()
-    timing = {
-        "data_preparation_s": round(t_data, 1),
-        "training_s": round(t_loop - t_val, 1),
-        "validation_s": round(t_val, 1),
-        "final_evaluation_s": round(t_final, 1),
-        "total_s": round(time.time() - t_start, 1),
-    }
-    extra = {"steps": step, "best_step": best_step, "time": timing}
-    if seq is not None:
-        extra["sequential"] = seq
-    runs.write_results(workdir, cfg, results, extra)
+    out = evalset.OutputSet(evaluate.workdir, evalset.TRAIN_ITEMS)
+    staging = out.open()
+    try:
+        params = step_lib.replicate(best.params, evaluate.mesh)
+        results, seq = evaluate.final(params, staging, logger, step)
+        logger.close()
+        timing = {k: round(v, 1) for k, v in times.items()}
+        timing["final_evaluation_s"] = round(time.time() - t_final0, 1)
+        timing["total_s"] = round(time.time() - t_start, 1)
+        extra = {"steps": step, "best_step": best_step, "time": timing}
+        if seq is not None:
+            extra["sequential"] = seq
+        runs.write_results(staging, cfg, results, extra)
+    except BaseException:
+        out.abandon()
+        raise
+    out.commit()
     print(runs.format_table(cfg, results, seq), flush=True)
     progress(
         "time: data preparation {data_preparation_s:.0f} s, training {training_s:.0f} s, "

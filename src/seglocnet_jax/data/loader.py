@@ -36,7 +36,7 @@ import numpy as np
 from grain.sharding import ShardOptions
 
 from seglocnet_jax import geometry
-from seglocnet_jax.data.manifest import read_manifest, split_files, verify_split
+from seglocnet_jax.data.manifest import read_manifest, verify_split
 from seglocnet_jax.data.records import RecordError, count_records, decode_sample
 
 
@@ -263,8 +263,7 @@ def make_loader(
         )
     local = batch_size // count
     man = read_manifest(dataset_dir)
-    files = split_files(man, dataset_dir, split)
-    verify_split(man, dataset_dir, split)  # size + SHA-256 per shard, once per process
+    files = verify_split(man, dataset_dir, split)  # counts; size + SHA-256 per shard
     n = sum(c for _, c in files)
     if n == 0:
         raise RecordError(f"{dataset_dir}: split {split!r} has no records")

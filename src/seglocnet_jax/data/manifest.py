@@ -207,11 +207,27 @@ def split_files(man: dict, dataset_dir: str | os.PathLike, split: str) -> list[t
     return [(os.path.join(root, s["file"]), int(s["count"])) for s in shards]
 
 
-def verify_split(man: dict, dataset_dir: str | os.PathLike, split: str) -> None:
-    """Checks every shard of ``split`` against the size and SHA-256 the manifest records
-    (:func:`records.verify_shard`: hashed once per process and file version); a difference
-    raises :class:`records.RecordError` naming the shard and the manifest."""
-    split_files(man, dataset_dir, split)  # names a missing split
+def verify_split(man: dict, dataset_dir: str | os.PathLike, split: str) -> list[tuple[str, int]]:
+    """The one check before a split is read (single frames and drives alike): the split's record
+    count is the sum of its shards' and of its cities', and every shard has the size and SHA-256
+    the manifest records (:func:`records.verify_shard`: hashed once per process and file
+    version). Returns :func:`split_files`; a difference raises :class:`records.RecordError` (a
+    shard) or :class:`ManifestError` (the counts), naming the split and the manifest."""
+    files = split_files(man, dataset_dir, split)  # names a missing split
+    entry = man["splits"][split]
+    shards = sum(c for _, c in files)
+    cities = entry.get("cities")
+    counts = {"its shards": shards}
+    if isinstance(cities, dict):
+        counts["its cities"] = sum(int(c) for c in cities.values())
+    for what, n in counts.items():
+        if entry.get("count") != n:
+            raise ManifestError(
+                f"{manifest_path(dataset_dir)}: split {split!r} records count "
+                f"{entry.get('count')!r}, but {what} hold {n} records (was the manifest "
+                "edited?); prepare the dataset again into a new directory"
+            )
     root = os.fspath(dataset_dir)
-    for entry in man["splits"][split]["shards"]:
-        verify_shard(os.path.join(root, entry["file"]), entry, manifest_path(dataset_dir))
+    for shard in entry["shards"]:
+        verify_shard(os.path.join(root, shard["file"]), shard, manifest_path(dataset_dir))
+    return files

@@ -11,7 +11,7 @@ import zlib
 import numpy as np
 
 from seglocnet_jax.data import loader as loader_lib
-from seglocnet_jax.data.manifest import read_manifest, split_files
+from seglocnet_jax.data.manifest import read_manifest, verify_split
 
 
 def drive_seed(odometry_seed: int, sequence_id: str) -> int:
@@ -56,7 +56,8 @@ class DriveSplit:
     def __init__(self, dataset_dir: str, split: str, map_variant: str, loader_cfg, *, threads=1):
         man = read_manifest(dataset_dir)
         self.name = split
-        self.source = loader_lib.ShardSource(split_files(man, dataset_dir, split))
+        # The loader's check (counts, SHA-256 of every shard) before any record is read.
+        self.source = loader_lib.ShardSource(verify_split(man, dataset_dir, split))
         cities = sorted(man["splits"][split]["cities"])
         self.rasters = loader_lib.load_rasters(dataset_dir, map_variant, cities)
         self.transform = loader_lib.FrameTransform(self.rasters, loader_cfg.max_points, train=False)

@@ -3,13 +3,14 @@
 Each checkpoint holds the train state (params, optimizer, step, RNG) and the data iterator's
 state (JSON), so a resume continues bit-identically.
 
-Integrity: once orbax has finished a step, ``<step>/checksums.json`` (``CHECKSUM_NAME``, written
-atomically) records the SHA-256 and size of every file of each item (``state``, ``data`` and the
-``metrics`` orbax keeps in ``best``) and the step's validation metrics (also for ``last``, so a
-resume can offer the step to ``best`` if a kill came between the two saves). Every restore
-verifies it first: a mismatch, or a step without the file (its save was cut off, or it predates
-checksums), is corrupt. Then the checkpoint's tree (paths, shapes, dtypes) is compared with the
-target's, because orbax itself restores a different shape silently.
+Integrity (:mod:`.checksums`): once orbax has finished a step, ``<step>/checksums.json``
+(``CHECKSUM_NAME``, written atomically) records the SHA-256 and size of every file of each item
+(``state``, ``data`` and the ``metrics`` orbax keeps in ``best``) and the step's validation
+metrics (also for ``last``, so a resume can offer the step to ``best`` if a kill came between
+the two saves). Every restore verifies it first: a mismatch, or a step without the file (its
+save was cut off, or it predates checksums), is corrupt. Then the checkpoint's tree (paths,
+shapes, dtypes) is compared with the target's, because orbax itself restores a different shape
+silently. :func:`resolve` names the step a path restores (and its checksum) without restoring.
 
 A corrupt step is reported (``WARNING: ...`` naming the step directory and the reason) and the
 previous good one is used; a step saved again replaces a corrupt one. When no step is usable
@@ -19,7 +20,6 @@ previous good one is used; a step saved again replaces a corrupt one. When no st
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import hashlib
 import json
 import os
@@ -30,12 +30,28 @@ import orbax.checkpoint as ocp
 from etils import epath
 
 from seglocnet_jax import fileio
+from seglocnet_jax.training.checksums import (
+    CHECKSUM_NAME,
+    plain,
+    read_sidecar,
+    verify_step,
+    write_checksums,
+)
 
-CHECKSUM_NAME = "checksums.json"
-CHECKSUM_FORMAT = "seglocnet_jax.checkpoint_checksums"
-CHECKSUM_VERSION = 1
-REQUIRED_ITEMS = ("state", "data")
-_HASH_CHUNK = 1 << 20
+__all__ = [
+    "CHECKSUM_NAME",
+    "CheckpointConfig",
+    "CheckpointError",
+    "CheckpointMismatchError",
+    "CheckpointRef",
+    "Checkpointer",
+    "archive_checkpoints",
+    "check_path",
+    "resolve",
+    "restore_params",
+    "tree_differences",
+    "verify_step",
+]
 
 
 class CheckpointError(RuntimeError):
@@ -81,130 +97,6 @@ def check_path(path: str) -> None:
             f"checkpoint directory {path!r} contains '[' or ']', which orbax/tensorstore cannot "
             "restore from; choose a run directory without brackets (hydra.run.dir=...)"
         )
-
-
-# --------------------------------------------------------------------------- checksums
-
-
-def _plain(obj):
-    """JSON-able copy of a metrics tree (NumPy scalars and arrays become Python values)."""
-    if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, np.ndarray | np.generic):
-        return obj.tolist()
-    if hasattr(obj, "__array__") and not isinstance(obj, str | bytes):  # jax arrays
-        return np.asarray(obj).tolist()
-    return obj
-
-
-def _file_digest(path: str) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(_HASH_CHUNK):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-def _item_files(item_dir: str) -> dict[str, int]:
-    """``{path relative to the item directory: size}`` of every file under it."""
-    out = {}
-    for root, dirs, files in os.walk(item_dir):
-        dirs.sort()
-        for name in sorted(files):
-            path = os.path.join(root, name)
-            out[os.path.relpath(path, item_dir).replace(os.sep, "/")] = os.path.getsize(path)
-    return out
-
-
-def _checksums(step_dir: str) -> dict:
-    """``{item: {relative file: {"sha256", "size"}}}`` of every item directory of a step."""
-    items = {}
-    for item in sorted(os.listdir(step_dir)):
-        item_dir = os.path.join(step_dir, item)
-        if not os.path.isdir(item_dir):
-            continue
-        items[item] = {
-            rel: {"sha256": _file_digest(os.path.join(item_dir, rel)), "size": size}
-            for rel, size in _item_files(item_dir).items()
-        }
-    return items
-
-
-def _write_checksums(
-    step_dir: str, step: int, metrics: dict | None, items: dict | None = None
-) -> None:
-    """``<step_dir>/checksums.json`` (process 0; ``items`` of a verified sidecar are reused)."""
-    if jax.process_index() != 0:
-        return
-    fileio.write_json_atomic(
-        os.path.join(step_dir, CHECKSUM_NAME),
-        {
-            "format": CHECKSUM_FORMAT,
-            "version": CHECKSUM_VERSION,
-            "step": int(step),
-            "algorithm": "sha256",
-            "items": _checksums(step_dir) if items is None else items,
-            "metrics": metrics,
-        },
-    )
-
-
-def _read_sidecar(step_dir: str) -> tuple[dict | None, str | None]:
-    """``(sidecar, None)`` or ``(None, reason)``."""
-    path = os.path.join(step_dir, CHECKSUM_NAME)
-    if not os.path.isfile(path):
-        return None, (
-            f"no {CHECKSUM_NAME} (its save was cut off, or it was written before checkpoints "
-            "carried checksums)"
-        )
-    try:
-        with open(path) as f:
-            side = json.load(f)
-    except (OSError, ValueError) as err:
-        return None, f"unreadable {CHECKSUM_NAME} ({err})"
-    if (
-        not isinstance(side, dict)
-        or side.get("format") != CHECKSUM_FORMAT
-        or side.get("version") != CHECKSUM_VERSION
-        or not isinstance(side.get("items"), dict)
-    ):
-        return None, f"{CHECKSUM_NAME} is not a version-{CHECKSUM_VERSION} checksum file"
-    return side, None
-
-
-def verify_step(step_dir: str) -> tuple[dict | None, str | None]:
-    """Checks a step directory against its ``checksums.json``: ``(sidecar, None)`` when every
-    file of every recorded item is there with its size and SHA-256, else ``(None, reason)``."""
-    side, reason = _read_sidecar(step_dir)
-    if reason is not None:
-        return None, reason
-    items = side["items"]
-    for item in REQUIRED_ITEMS:
-        if item not in items:
-            return None, f"{CHECKSUM_NAME} records no item {item!r}"
-    for item, files in items.items():
-        item_dir = os.path.join(step_dir, item)
-        if not os.path.isdir(item_dir):
-            return None, f"item directory {item}/ is missing"
-        have = _item_files(item_dir)
-        missing = sorted(set(files) - set(have))
-        extra = sorted(set(have) - set(files))
-        if missing:
-            return None, f"file {item}/{missing[0]} is missing"
-        if extra:
-            return None, f"unexpected file {item}/{extra[0]} (not in {CHECKSUM_NAME})"
-        for rel, want in files.items():
-            if have[rel] != want["size"]:
-                return None, (
-                    f"file {item}/{rel} has {have[rel]} bytes, {CHECKSUM_NAME} records "
-                    f"{want['size']} (truncated?)"
-                )
-        for rel, want in files.items():
-            if _file_digest(os.path.join(item_dir, rel)) != want["sha256"]:
-                return None, f"checksum mismatch in {item}/{rel} (the file changed after saving)"
-    return side, None
 
 
 # --------------------------------------------------------------------------- tree comparison
@@ -341,7 +233,7 @@ class Checkpointer:
             side, reason = verify_step(step_dir)
             if reason is None:
                 if metrics is not None and side.get("metrics") is None:
-                    _write_checksums(step_dir, step, metrics, side["items"])
+                    write_checksums(step_dir, step, metrics, side["items"])
                 return
             print(
                 f"WARNING: checkpoint {step_dir} is corrupt or incomplete: {reason}; replacing it",
@@ -356,14 +248,14 @@ class Checkpointer:
         )
         mngr.wait_until_finished()
         if step in mngr.all_steps():  # best: a worse step is dropped at once
-            _write_checksums(step_dir, step, metrics)
+            write_checksums(step_dir, step, metrics)
 
     def _better_than_kept(self, metrics: dict) -> bool:
         """Whether ``metrics`` beat every good step kept in ``best`` (else orbax would write
         the step only to delete it again)."""
         value = metrics[self.cfg.best_metric]
         for step in self.best.all_steps():
-            side, _ = _read_sidecar(_step_dir(self.best_dir, step))
+            side, _ = read_sidecar(_step_dir(self.best_dir, step))
             kept = ((side or {}).get("metrics") or {}).get(self.cfg.best_metric)
             if not isinstance(kept, int | float) or kept != kept:  # unknown or NaN: no rival
                 continue
@@ -383,7 +275,7 @@ class Checkpointer:
         """Saves to ``last`` (with ``metrics`` when given); with validation ``metrics`` that
         hold ``best_metric`` also offers it to ``best``."""
         step = int(step)
-        metrics = None if metrics is None else _plain(metrics)
+        metrics = None if metrics is None else plain(metrics)
         self._save_to(self.last, self.last_dir, step, state, data_state, metrics, best=False)
         self._offer_best(step, state, data_state, metrics)
 
@@ -429,12 +321,7 @@ def archive_checkpoints(workdir: str) -> str | None:
     root = os.path.abspath(os.path.join(workdir, "checkpoints"))
     if not os.path.exists(root):
         return None
-    stamp = datetime.datetime.now(datetime.UTC).strftime("%Y%m%dT%H%M%SZ")
-    dest = f"{root}.discarded-{stamp}"
-    n = 1
-    while os.path.exists(dest):
-        dest = f"{root}.discarded-{stamp}-{n}"
-        n += 1
+    dest = fileio.discarded_path(root)
     os.rename(root, dest)
     return dest
 
@@ -445,15 +332,9 @@ def _manager_steps(manager_dir: str) -> list[int]:
     return sorted((int(d) for d in os.listdir(manager_dir) if d.isdigit()), reverse=True)
 
 
-def restore_params(path: str, target_state):
-    """Restores a train state from a checkpoint path: a step directory (``.../last/1200``), a
-    manager directory (``.../checkpoints/best``: its newest good step) or a run's workdir (its
-    best, else its last checkpoints). Returns ``(state, step)``.
-
-    Every step is verified against its checksums; a corrupt one is reported and the previous
-    good one used. A tree that differs from ``target_state`` raises
-    :class:`CheckpointMismatchError` naming the differing parameters."""
-    path = os.path.abspath(path)
+def _candidates(path: str) -> list[tuple[str, int]]:
+    """``[(manager directory, step)]`` a checkpoint path may restore, in the order tried: a
+    manager's steps newest first; a run directory's best, then its last; a step directory."""
     if not os.path.exists(path):
         raise CheckpointError(f"checkpoint={path!r} does not exist")
     candidates: list[tuple[str, int]] = []
@@ -474,6 +355,81 @@ def restore_params(path: str, target_state):
         candidates = [(parent, int(name))]
     if not candidates:
         raise CheckpointError(f"checkpoint={path!r} holds no orbax checkpoint steps")
+    return candidates
+
+
+@dataclasses.dataclass(frozen=True)
+class CheckpointRef:
+    """The one step a checkpoint path names, verified against its checksums.
+
+    Attributes:
+      step_dir: the step directory (``<run>/checkpoints/best/<step>``).
+      step: its training step.
+      run_dir: the run directory it belongs to (above ``checkpoints/``), else its manager's
+        parent directory.
+      checksum: ``sha256:<hex>`` of the step's recorded file checksums (every file of the
+        state and data items): the same parameters give the same checksum wherever they lie.
+      skipped: ``[(step directory, reason)]`` of newer steps that are corrupt.
+    """
+
+    step_dir: str
+    step: int
+    run_dir: str
+    checksum: str
+    skipped: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def name(self) -> str:
+        """``<run directory name>-step<step>`` (an evaluation's default directory names it)."""
+        return f"{os.path.basename(self.run_dir)}-step{self.step}"
+
+    def to_dict(self) -> dict:
+        return {
+            "run_dir": self.run_dir,
+            "step": self.step,
+            "step_dir": self.step_dir,
+            "checksum": self.checksum,
+        }
+
+
+def resolve(path: str) -> CheckpointRef:
+    """The step :func:`restore_params` restores from ``path`` (the first whose checksums
+    verify), without restoring it; :class:`CheckpointError` when there is none."""
+    path = os.path.abspath(path)
+    failures: list[tuple[str, str]] = []
+    for manager_dir, step in _candidates(path):
+        step_dir = _step_dir(manager_dir, step)
+        side, reason = verify_step(step_dir)
+        if reason is not None:
+            failures.append((step_dir, reason))
+            continue
+        items = json.dumps(side["items"], sort_keys=True).encode()
+        run_dir = os.path.dirname(os.path.abspath(manager_dir))
+        if os.path.basename(run_dir) == "checkpoints":
+            run_dir = os.path.dirname(run_dir)
+        return CheckpointRef(
+            step_dir=step_dir,
+            step=step,
+            run_dir=run_dir,
+            checksum="sha256:" + hashlib.sha256(items).hexdigest(),
+            skipped=tuple(failures),
+        )
+    raise CheckpointError(
+        f"checkpoint={path!r}: no usable checkpoint: {_failure_list(failures)}. Point "
+        "checkpoint= at another run or step directory, or train again"
+    )
+
+
+def restore_params(path: str, target_state):
+    """Restores a train state from a checkpoint path: a step directory (``.../last/1200``), a
+    manager directory (``.../checkpoints/best``: its newest good step) or a run's workdir (its
+    best, else its last checkpoints). Returns ``(state, step)``.
+
+    Every step is verified against its checksums; a corrupt one is reported and the previous
+    good one used. A tree that differs from ``target_state`` raises
+    :class:`CheckpointMismatchError` naming the differing parameters."""
+    path = os.path.abspath(path)
+    candidates = _candidates(path)
     failures: list[tuple[str, str]] = []
     managers: dict[str, ocp.CheckpointManager] = {}
     try:
