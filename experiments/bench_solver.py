@@ -8,7 +8,8 @@ The bare-FFT reference (``bare_fft_volume``) makes exactly the XLA FFT calls of 
 schedule (same transforms, shapes, counts, per-sample and per-chunk loops, one after the other)
 and nothing else: each call transforms its own previous output, so there are no pads, crops,
 transposes, BEV rotation, spectrum products or output assembly. ``fft_over_bare`` (ratio of the
-medians) is what the solver costs over its FFTs alone.
+medians; ``fft_over_bare_cpu`` of the process CPU times, steadier on shared cores) is what the
+solver costs over its FFTs alone.
 Progress goes to stderr; the last stdout line is JSON.
 
     python experiments/bench_solver.py [--batch 1 8] [--repeats 9] [--conv-repeats 1]
@@ -75,10 +76,12 @@ def bare_fft_volume(bufs, t0, num_rotations, rotation_chunk, batch_chunk):
     return jax.lax.map(lambda x: fn(*x), (bufs, t0), batch_size=batch_chunk)
 
 
-def _timed(fn) -> tuple[float, object]:
-    t0 = time.perf_counter()
+def _timed(fn) -> tuple[float, object, float]:
+    """Wall seconds, the result, and this process's CPU seconds (all its threads): the CPU
+    time moves less than the wall time when other processes share the cores."""
+    t0, c0 = time.perf_counter(), time.process_time()
     out = jax.block_until_ready(fn())
-    return time.perf_counter() - t0, out
+    return time.perf_counter() - t0, out, time.process_time() - c0
 
 
 def bench(batch: int, repeats: int, conv_repeats: int, num_rotations: int, seed: int = 0) -> dict:
@@ -112,16 +115,21 @@ def bench(batch: int, repeats: int, conv_repeats: int, num_rotations: int, seed:
     for fn in runs.values():
         jax.block_until_ready(fn())  # compile and warm up
     times = {name: [] for name in runs}
+    cpu = {name: [] for name in runs}
     for rep in range(repeats):
         for name in list(runs)[:: 1 if rep % 2 else -1]:  # alternate who goes first
-            times[name].append(_timed(runs[name])[0])
+            seconds, _, cpu_seconds = _timed(runs[name])
+            times[name].append(seconds)
+            cpu[name].append(cpu_seconds)
     result = {"batch": batch, "num_rotations": num_rotations, "repeats": repeats}
     for name, ts in times.items():
         result[f"{name}_ms_per_sample"] = round(1000 * float(np.median(ts)) / batch, 2)
         result[f"{name}_min_ms_per_sample"] = round(1000 * float(np.min(ts)) / batch, 2)
-    result["fft_over_bare"] = round(
-        result["fft_ms_per_sample"] / result["bare_fft_ms_per_sample"], 3
-    )
+        result[f"{name}_cpu_ms_per_sample"] = round(1000 * float(np.median(cpu[name])) / batch, 2)
+    for kind in ("", "_cpu"):
+        result[f"fft_over_bare{kind}"] = round(
+            result[f"fft{kind}_ms_per_sample"] / result[f"bare_fft{kind}_ms_per_sample"], 3
+        )
     print(
         f"  fft {result['fft_ms_per_sample']} ms/sample, bare FFTs "
         f"{result['bare_fft_ms_per_sample']}: x{result['fft_over_bare']}",
@@ -134,7 +142,7 @@ def bench(batch: int, repeats: int, conv_repeats: int, num_rotations: int, seed:
         jax.block_until_ready(conv())
         conv_times = []
         for _ in range(conv_repeats):
-            seconds, conv_volume = _timed(conv)
+            seconds, conv_volume, _ = _timed(conv)
             conv_times.append(seconds)
         result["conv_ms_per_sample"] = round(1000 * float(np.median(conv_times)) / batch, 2)
         result["conv_over_fft"] = round(
