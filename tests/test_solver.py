@@ -71,6 +71,7 @@ def test_round_trip_recovers_exact_cell(raster, k):
         (4, 32, 64, 2, 2),
         (16, 24, 48, 1, 0),
         (16, 24, 48, 3, 1),
+        (4, 40, 48, 1, 2),  # tile < twice the BEV, one channel: the OSM alignment's shapes
     ],
 )
 def test_fft_matches_conv(num_rotations, size, tsize, channels, chunk):
