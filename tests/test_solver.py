@@ -63,12 +63,23 @@ def test_round_trip_recovers_exact_cell(raster, k):
     assert g.angle_error(float(out["pose_tile"][0, 2]), yaw) < 1e-5
 
 
-@pytest.mark.parametrize("num_rotations,size,tsize", [(8, 128, 256), (256, 24, 48), (4, 32, 64)])
-def test_fft_matches_conv(num_rotations, size, tsize):
+@pytest.mark.parametrize(
+    "num_rotations,size,tsize,channels,chunk",
+    [
+        (8, 128, 256, 2, 2),
+        (256, 24, 48, 2, 2),
+        (4, 32, 64, 2, 2),
+        (16, 24, 48, 1, 0),
+        (16, 24, 48, 3, 1),
+        (4, 40, 48, 1, 2),  # tile < twice the BEV, one channel: the OSM alignment's shapes
+    ],
+)
+def test_fft_matches_conv(num_rotations, size, tsize, channels, chunk):
+    # Odd channel counts take the packing's zero channel; every rotation_chunk the same volume.
     rng = np.random.default_rng(num_rotations)
-    bev = rng.normal(size=(2, size, size)).astype(np.float32)
-    tile = (rng.random((2, tsize, tsize)) < 0.4).astype(np.float32)
-    fft = solver.score_volume(bev, tile, num_rotations, "fft")
+    bev = rng.normal(size=(channels, size, size)).astype(np.float32)
+    tile = (rng.random((channels, tsize, tsize)) < 0.4).astype(np.float32)
+    fft = solver.score_volume(bev, tile, num_rotations, "fft", rotation_chunk=chunk)
     conv = solver.score_volume(bev, tile, num_rotations, "conv")
     assert fft.shape == (num_rotations, tsize - size + 1, tsize - size + 1)
     scale = float(jnp.abs(conv).max())
