@@ -3,6 +3,8 @@
 import dataclasses
 import json
 import os
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -106,3 +108,27 @@ def test_bad_manifest_is_named(tmp_path):
         mf.read_manifest(ddir)
     with pytest.raises(mf.ManifestError, match="no manifest"):
         mf.read_manifest(tmp_path)
+
+
+def test_records_are_encoded_beside_the_renders_and_keep_their_order(tmp_path, monkeypatch):
+    """Each batch is encoded in a thread while the next one renders; the shards are the same
+    bytes however long each encoding takes, and an encoding error names its record."""
+    reference = _shard_bytes(pp.prepare(small_config(tmp_path / "a"), Factory(), variants=()))
+    encode, threads, delays = pp.encode_sample, set(), iter(np.tile([0.02, 0.0, 0.005], 100))
+
+    def slow_encode(sample, **kw):
+        threads.add(threading.current_thread().name)
+        time.sleep(next(delays))  # later batches may be rendered before earlier ones are encoded
+        return encode(sample, **kw)
+
+    monkeypatch.setattr(pp, "encode_sample", slow_encode)
+    ddir = pp.prepare(small_config(tmp_path / "b"), Factory(), variants=())
+    assert _shard_bytes(ddir) == reference
+    assert threading.main_thread().name not in threads  # encoded beside the renders
+
+    def bad_encode(sample, **kw):
+        return encode(dict(sample, lidar=sample["lidar"] * 1e3), **kw)  # beyond LIDAR_RANGE
+
+    monkeypatch.setattr(pp, "encode_sample", bad_encode)
+    with pytest.raises(records.SchemaError, match=r"train-00000-of-00003\.array_record record 0"):
+        pp.prepare(small_config(tmp_path / "c"), Factory(), variants=())

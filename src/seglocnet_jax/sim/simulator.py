@@ -152,7 +152,8 @@ class Simulator:
                 {k: np.stack([lt[k] for lt in lights]) for k in cam.LIGHT_KEYS},
                 keys,
             )
-            outs.append(jax.device_get(out))
+            outs.append(out)  # not fetched yet: the next chunk's crops overlap this one
+        outs = jax.device_get(outs)
         return {k: np.concatenate([o[k] for o in outs])[:b] for k in outs[0]}
 
     def render(self, poses, seed: int, sample_ids=None, sequences=None) -> list[dict]:
