@@ -3,9 +3,10 @@ LiDAR at world poses (the producer samples of ``data.schema``, which ``data.simu
 validates: ``sim`` does not import ``data``).
 
 Per frame a square patch of the world raster around the pose is cut in NumPy (static size, so
-one compiled function serves every frame); ``cfg.chunk`` frames are rendered per call by a
-jitted, vmapped function. Everything random (lighting, noise, dropout) derives from ``seed`` and
-the frame's index in the call: the same poses and seed give the same samples.
+one compiled function serves every frame, and every world of the same preset, resolution and
+seed); ``cfg.chunk`` frames are rendered per call by a jitted, vmapped function, the chunks of a
+call dispatched before any is fetched. Everything random (lighting, noise, dropout) derives
+from ``seed`` and the frame's index in the call: the same poses and seed give the same samples.
 """
 
 from __future__ import annotations
