@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import os
+import re
 import threading
 import time
 
@@ -26,10 +27,16 @@ def _shard_bytes(dataset_dir):
     return out
 
 
-def test_prepare_writes_planned_disjoint_splits(tmp_path):
+def test_prepare_writes_planned_disjoint_splits(tmp_path, capsys):
     cfg = small_config(tmp_path)
     factory = Factory()
     ddir = pp.prepare(cfg, factory, variants=())
+    printed = capsys.readouterr().out  # the breakdown of where the preparation's time went
+    assert re.search(
+        r"data preparation of .*tiny: worlds and plans \d+ s, sensor shards \(rendered, "
+        r"encoded, written\) \d+ s, map variants \d+ s",
+        printed,
+    ), printed
     man = mf.read_manifest(ddir)
     assert man["complete"] and man["config"] == cfg.identity()
     counts = {k: v["count"] for k, v in man["splits"].items()}
@@ -51,6 +58,7 @@ def test_prepare_writes_planned_disjoint_splits(tmp_path):
     # Prepared already: a second call checks and renders nothing.
     again = Factory()
     assert pp.prepare(cfg, again, variants=()) == ddir and again.calls == 0
+    assert "data preparation of" not in capsys.readouterr().out  # nothing done, nothing timed
 
 
 def test_interrupted_preparation_resumes_to_identical_shards(tmp_path):
