@@ -3,6 +3,9 @@
 import dataclasses
 import json
 import os
+import re
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -24,10 +27,16 @@ def _shard_bytes(dataset_dir):
     return out
 
 
-def test_prepare_writes_planned_disjoint_splits(tmp_path):
+def test_prepare_writes_planned_disjoint_splits(tmp_path, capsys):
     cfg = small_config(tmp_path)
     factory = Factory()
     ddir = pp.prepare(cfg, factory, variants=())
+    printed = capsys.readouterr().out  # the breakdown of where the preparation's time went
+    assert re.search(
+        r"data preparation of .*tiny: worlds and plans \d+ s, sensor shards \(rendered, "
+        r"encoded, written\) \d+ s, map variants \d+ s",
+        printed,
+    ), printed
     man = mf.read_manifest(ddir)
     assert man["complete"] and man["config"] == cfg.identity()
     counts = {k: v["count"] for k, v in man["splits"].items()}
@@ -49,6 +58,7 @@ def test_prepare_writes_planned_disjoint_splits(tmp_path):
     # Prepared already: a second call checks and renders nothing.
     again = Factory()
     assert pp.prepare(cfg, again, variants=()) == ddir and again.calls == 0
+    assert "data preparation of" not in capsys.readouterr().out  # nothing done, nothing timed
 
 
 def test_interrupted_preparation_resumes_to_identical_shards(tmp_path):
@@ -106,3 +116,27 @@ def test_bad_manifest_is_named(tmp_path):
         mf.read_manifest(ddir)
     with pytest.raises(mf.ManifestError, match="no manifest"):
         mf.read_manifest(tmp_path)
+
+
+def test_records_are_encoded_beside_the_renders_and_keep_their_order(tmp_path, monkeypatch):
+    """Each batch is encoded in a thread while the next one renders; the shards are the same
+    bytes however long each encoding takes, and an encoding error names its record."""
+    reference = _shard_bytes(pp.prepare(small_config(tmp_path / "a"), Factory(), variants=()))
+    encode, threads, delays = pp.encode_sample, set(), iter(np.tile([0.02, 0.0, 0.005], 100))
+
+    def slow_encode(sample, **kw):
+        threads.add(threading.current_thread().name)
+        time.sleep(next(delays))  # later batches may be rendered before earlier ones are encoded
+        return encode(sample, **kw)
+
+    monkeypatch.setattr(pp, "encode_sample", slow_encode)
+    ddir = pp.prepare(small_config(tmp_path / "b"), Factory(), variants=())
+    assert _shard_bytes(ddir) == reference
+    assert threading.main_thread().name not in threads  # encoded beside the renders
+
+    def bad_encode(sample, **kw):
+        return encode(dict(sample, lidar=sample["lidar"] * 1e3), **kw)  # beyond LIDAR_RANGE
+
+    monkeypatch.setattr(pp, "encode_sample", bad_encode)
+    with pytest.raises(records.SchemaError, match=r"train-00000-of-00003\.array_record record 0"):
+        pp.prepare(small_config(tmp_path / "c"), Factory(), variants=())

@@ -142,6 +142,12 @@ def test_render_is_deterministic_per_seed(sim, poses, arrays, samples):
     assert not np.array_equal(arrays["images"], other["images"])
     sim.render_arrays(poses[:1] + np.array([1.0, 0.5, 0.3]), seed=5)  # other poses, padded
     assert sim._renderer(False)._cache_size() == 1  # compiled once per sensor config
+    # Another world of the same preset and seed (the next city) reuses the compiled renderer.
+    other_city = dataclasses.replace(sim.world, name="other")
+    assert Simulator(other_city, sim.cfg)._renderer(False) is sim._renderer(False)
+    assert Simulator(other_city, dataclasses.replace(sim.cfg, pixel_noise=0.0))._renderer(
+        False
+    ) is not sim._renderer(False)
 
 
 def test_pixels_see_what_the_stored_calibration_projects(samples, arrays):

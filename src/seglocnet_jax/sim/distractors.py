@@ -160,8 +160,10 @@ def place(roads, drivable, buildings, rng: np.random.Generator, cfg) -> Distract
     bottom = np.concatenate([p[3] for p in parts])
     colour = np.concatenate([p[4] for p in parts]).astype(np.uint8)
     obstacles = list(shapely.get_parts(drivable)) + list(buildings)
-    tree = shapely.STRtree(obstacles)
-    hit = np.unique(tree.query(geoms, predicate="intersects")[0])
+    # The tree holds the small objects and the obstacles query it: the predicate then runs on
+    # each (prepared) obstacle once instead of on the whole drivable area per object (same
+    # pairs, ~50x faster).
+    hit = np.unique(shapely.STRtree(geoms).query(obstacles, predicate="intersects")[1])
     keep = np.ones(len(geoms), bool)
     keep[hit] = False
     # A trunk goes with its canopy: drop both if either is dropped.

@@ -3,13 +3,15 @@ LiDAR at world poses (the producer samples of ``data.schema``, which ``data.simu
 validates: ``sim`` does not import ``data``).
 
 Per frame a square patch of the world raster around the pose is cut in NumPy (static size, so
-one compiled function serves every frame); ``cfg.chunk`` frames are rendered per call by a
-jitted, vmapped function. Everything random (lighting, noise, dropout) derives from ``seed`` and
-the frame's index in the call: the same poses and seed give the same samples.
+one compiled function serves every frame, and every world of the same preset, resolution and
+seed); ``cfg.chunk`` frames are rendered per call by a jitted, vmapped function, the chunks of a
+call dispatched before any is fetched. Everything random (lighting, noise, dropout) derives
+from ``seed`` and the frame's index in the call: the same poses and seed give the same samples.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -28,6 +30,83 @@ from seglocnet_jax.sim.world import World
 _LAYERS = ("surface", "thing", "colour", "top", "bottom")
 
 
+@dataclasses.dataclass(frozen=True)
+class _Rig:
+    """What the compiled frame function reads: the sensors, the world's resolution, level
+    height and palette seed. Equal rigs (every city of one preset) share one compiled renderer."""
+
+    cfg: sn.SensorConfig
+    resolution: float
+    level_height: float
+    palette_seed: int
+
+    @functools.cached_property
+    def arrays(self) -> dict:
+        """The rig's device constants (camera and LiDAR columns, march samples, palette)."""
+        cfg = self.cfg
+        d, step = sn.march_distances(cfg)
+        return {
+            "cam": tuple(jnp.asarray(a) for a in sn.camera_columns(cfg)),
+            "lidar": tuple(jnp.asarray(a) for a in sn.lidar_columns(cfg)),
+            "dists": jnp.asarray(d),
+            "steps": jnp.asarray(step),
+            "palette": jnp.asarray(thing_palette(self.palette_seed)),
+        }
+
+
+@functools.lru_cache(maxsize=8)
+def _renderer(rig: _Rig, diagnostics: bool):
+    """The jitted, vmapped :func:`_frame` of ``rig`` (compiled once per rig and ``diagnostics``)."""
+    return jax.jit(jax.vmap(functools.partial(_frame, rig, diagnostics=diagnostics)))
+
+
+def _frame(rig: _Rig, patch, pose, cell0, light, key, *, diagnostics: bool):
+    cfg, res, arr = rig.cfg, rig.resolution, rig.arrays
+    patch = {
+        k: v.astype(jnp.int32 if k in ("surface", "thing", "colour") else jnp.float32)
+        for k, v in patch.items()
+    }
+    k_cam, k_lidar = jax.random.split(key)
+    pos, az, slopes = arr["cam"]
+    hits = rn.march(patch, pose, pos, az, slopes, arr["dists"], arr["steps"], cfg.max_range, res)
+    rgb = cam.shade(
+        hits,
+        slopes,
+        light,
+        arr["palette"],
+        cell0,
+        res,
+        k_cam,
+        cfg.pixel_noise,
+        rig.level_height,
+    )  # (N*W, H, 3)
+    n, h, w = len(geometry.CAMERA_NAMES), cfg.image_height, cfg.image_width
+    images = cam.to_uint8(rgb).reshape(n, w, h, 3).transpose(0, 2, 1, 3)  # (N, H, W, 3)
+
+    lpos, laz, lslopes = arr["lidar"]
+    lhits = rn.march(
+        patch, pose, lpos, laz, lslopes, arr["dists"], arr["steps"], cfg.max_range, res
+    )
+    lpts = rn.hit_points_ego(lhits, lpos, laz, lslopes)  # (A, beams, 3)
+    lid = ld.returns(
+        lhits,
+        lpts,
+        lpos[0],
+        k_lidar,
+        range_noise=cfg.range_noise,
+        dropout=cfg.dropout,
+        intensity_noise=cfg.intensity_noise,
+        max_range=cfg.max_range,
+    )
+    out = {"images": images, "lidar": lid["points"], "lidar_valid": lid["valid"]}
+    if diagnostics:  # ground truth for tests and benchmarks, never stored
+        cam_points = rn.hit_points_ego(hits, pos, az, slopes)  # (N*W, H, 3) ego
+        out["cam_points"] = cam_points.reshape(n, w, h, 3).transpose(0, 2, 1, 3)
+        out["cam_kind"] = hits["kind"].reshape(n, w, h).transpose(0, 2, 1)
+        out["lidar_thing"] = lid["thing"]
+    return out
+
+
 class Simulator:
     """Renders the sensors of ``cfg`` (:class:`sensors.SensorConfig`) in ``world``."""
 
@@ -39,67 +118,11 @@ class Simulator:
         self.patch_size = 2 * int(math.ceil(reach / res))
         self.intrinsics = sn.intrinsics(cfg)  # (N, 3, 3)
         self.cam_to_ego = sn.cam_to_ego(cfg)  # (N, 4, 4)
-        self._cam = tuple(jnp.asarray(a) for a in sn.camera_columns(cfg))
-        self._lidar = tuple(jnp.asarray(a) for a in sn.lidar_columns(cfg))
-        d, step = sn.march_distances(cfg)
-        self._dists, self._steps = jnp.asarray(d), jnp.asarray(step)
-        self._palette = jnp.asarray(thing_palette(world.seed))
-        self._compiled: dict[bool, object] = {}
+        self._rig = _Rig(cfg, float(res), float(world.cfg.level_height), int(world.seed))
+        self._rig.arrays  # noqa: B018  (made here, outside any trace: the jit closes over them)
 
     def _renderer(self, diagnostics: bool):
-        """The jitted, vmapped :meth:`_frame` (one per value of ``diagnostics``)."""
-        if diagnostics not in self._compiled:
-            frame = functools.partial(self._frame, diagnostics=diagnostics)
-            self._compiled[diagnostics] = jax.jit(jax.vmap(frame))
-        return self._compiled[diagnostics]
-
-    # ------------------------------------------------------------------ compiled part
-
-    def _frame(self, patch, pose, cell0, light, key, *, diagnostics: bool):
-        cfg, res = self.cfg, self.world.grid.resolution
-        patch = {
-            k: v.astype(jnp.int32 if k in ("surface", "thing", "colour") else jnp.float32)
-            for k, v in patch.items()
-        }
-        k_cam, k_lidar = jax.random.split(key)
-        pos, az, slopes = self._cam
-        hits = rn.march(patch, pose, pos, az, slopes, self._dists, self._steps, cfg.max_range, res)
-        rgb = cam.shade(
-            hits,
-            slopes,
-            light,
-            self._palette,
-            cell0,
-            res,
-            k_cam,
-            cfg.pixel_noise,
-            self.world.cfg.level_height,
-        )  # (N*W, H, 3)
-        n, h, w = len(geometry.CAMERA_NAMES), cfg.image_height, cfg.image_width
-        images = cam.to_uint8(rgb).reshape(n, w, h, 3).transpose(0, 2, 1, 3)  # (N, H, W, 3)
-
-        lpos, laz, lslopes = self._lidar
-        lhits = rn.march(
-            patch, pose, lpos, laz, lslopes, self._dists, self._steps, cfg.max_range, res
-        )
-        lpts = rn.hit_points_ego(lhits, lpos, laz, lslopes)  # (A, beams, 3)
-        lid = ld.returns(
-            lhits,
-            lpts,
-            lpos[0],
-            k_lidar,
-            range_noise=cfg.range_noise,
-            dropout=cfg.dropout,
-            intensity_noise=cfg.intensity_noise,
-            max_range=cfg.max_range,
-        )
-        out = {"images": images, "lidar": lid["points"], "lidar_valid": lid["valid"]}
-        if diagnostics:  # ground truth for tests and benchmarks, never stored
-            cam_points = rn.hit_points_ego(hits, pos, az, slopes)  # (N*W, H, 3) ego
-            out["cam_points"] = cam_points.reshape(n, w, h, 3).transpose(0, 2, 1, 3)
-            out["cam_kind"] = hits["kind"].reshape(n, w, h).transpose(0, 2, 1)
-            out["lidar_thing"] = lid["thing"]
-        return out
+        return _renderer(self._rig, diagnostics)
 
     # ------------------------------------------------------------------ host side
 
@@ -152,7 +175,8 @@ class Simulator:
                 {k: np.stack([lt[k] for lt in lights]) for k in cam.LIGHT_KEYS},
                 keys,
             )
-            outs.append(jax.device_get(out))
+            outs.append(out)  # not fetched yet: the next chunk's crops overlap this one
+        outs = jax.device_get(outs)
         return {k: np.concatenate([o[k] for o in outs])[:b] for k in outs[0]}
 
     def render(self, poses, seed: int, sample_ids=None, sequences=None) -> list[dict]:

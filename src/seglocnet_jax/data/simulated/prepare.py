@@ -21,7 +21,10 @@ writes exactly the shards a single run would have written.
 
 from __future__ import annotations
 
+import collections
+import concurrent.futures
 import os
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -80,6 +83,33 @@ def write_plan(
     Existing shards are kept after checking their record count and, where the entry records
     one, their checksum (a mismatch raises and leaves the file alone).
     """
+    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="encode") as encoder:
+        return _write_shards(
+            dataset_dir, plan, split_entry, render, cfg, split_idx, progress, encoder
+        )
+
+
+def _encode_batch(plan: SplitPlan, samples: list, b0: int, start: int, path: str, cfg) -> list:
+    """Record bytes of rendered ``samples`` (split frames ``b0, b0 + 1, ...``) with their split
+    metadata; ``start``: the shard's first frame (names records in errors)."""
+    records = []
+    for i, sample in enumerate(samples, start=b0):
+        sample = dict(
+            sample,
+            city=plan.city,  # the city key, whatever the source calls the city
+            sample_id=plan.sample_id(i),
+            sequence_id=str(plan.sequence_ids[i]),
+            frame_index=np.int64(plan.frame_index[i]),
+            timestamp=np.float64(plan.timestamps[i]),
+            prior=np.asarray(plan.priors[i], np.float64),
+        )
+        records.append(
+            encode_sample(sample, compress_level=cfg.png_level, where=f"{path} record {i - start}")
+        )
+    return records
+
+
+def _write_shards(dataset_dir, plan, split_entry, render, cfg, split_idx, progress, encoder):
     written = 0
     for shard_idx, entry in enumerate(split_entry["shards"]):
         path = os.path.join(dataset_dir, entry["file"])
@@ -103,30 +133,22 @@ def write_plan(
             if progress is not None:
                 progress.update(stop - start)
             continue
-        records = []
+        # A thread encodes each rendered batch while the simulator renders the next one (its
+        # compiled code runs without the interpreter lock; zlib releases it too). Records keep
+        # their order, so the shard's bytes do not depend on the overlap.
+        records, pending = [], collections.deque()
         for b0 in range(start, stop, cfg.render_batch):
             b1 = min(b0 + cfg.render_batch, stop)
             seed = _seed(cfg.seed, split_idx, b0, 0x7E4)  # b0: frame index in the split
             samples = render(plan.poses[b0:b1], seed)
             if len(samples) != b1 - b0:
                 raise ValueError(f"render returned {len(samples)} samples for {b1 - b0} poses")
-            for i, sample in enumerate(samples, start=b0):
-                sample = dict(
-                    sample,
-                    city=plan.city,  # the city key, whatever the source calls the city
-                    sample_id=plan.sample_id(i),
-                    sequence_id=str(plan.sequence_ids[i]),
-                    frame_index=np.int64(plan.frame_index[i]),
-                    timestamp=np.float64(plan.timestamps[i]),
-                    prior=np.asarray(plan.priors[i], np.float64),
-                )
-                records.append(
-                    encode_sample(
-                        sample, compress_level=cfg.png_level, where=f"{path} record {i - start}"
-                    )
-                )
+            pending.append(encoder.submit(_encode_batch, plan, samples, b0, start, path, cfg))
+            while len(pending) > 1:  # at most one batch waits: memory stays bounded
+                records.extend(pending.popleft().result())
             if progress is not None:
                 progress.update(b1 - b0)
+        records.extend(r for job in pending for r in job.result())
         entry.update(write_shard(path, records))
         written += 1
     return written
@@ -222,8 +244,9 @@ def _prepare(cfg: PrepareConfig, dataset_dir: str, source_factory, variants) -> 
     factory = source_factory
     if factory is None and cfg.source == "sim":
         factory = default_source_factory(cfg)
-    sources = {}
+    sources, times = {}, {}  # times: the printed breakdown, seconds
     if man is None or not man["complete"] or not all_shards_exist(man, dataset_dir):
+        t0 = time.perf_counter()
         main = city_key(cfg.city)
         sources[main] = factory(cfg.city)  # by city key, as the manifest
         plans = plan_main_city(sources[main], cfg)
@@ -255,6 +278,8 @@ def _prepare(cfg: PrepareConfig, dataset_dir: str, source_factory, variants) -> 
         else:
             planned = man["splits"]  # the plan, with the checksums of recorded shards
         total = sum(len(p.poses) for p in plans)
+        times["worlds and plans"] = time.perf_counter() - t0  # the worlds dominate
+        t0 = time.perf_counter()
         with tqdm(total=total, desc=f"prepare {cfg.name}", unit="frame") as bar:
             for split_idx, plan in enumerate(plans):
                 write_plan(
@@ -269,10 +294,16 @@ def _prepare(cfg: PrepareConfig, dataset_dir: str, source_factory, variants) -> 
                 mf.write_manifest(dataset_dir, man)  # the split's shard checksums
         man = dict(man, complete=True)
         mf.write_manifest(dataset_dir, man)
+        times["sensor shards (rendered, encoded, written)"] = time.perf_counter() - t0
     if variants is None:
         variants = [MapConfig(**spec) for spec in cfg.map_variants]
+    t0 = time.perf_counter()
     for vcfg in variants:
         ensure_variant(dataset_dir, vcfg, factory, sources)
+    if times:
+        times["map variants"] = time.perf_counter() - t0
+        parts = ", ".join(f"{k} {v:.0f} s" for k, v in times.items())
+        print(f"data preparation of {dataset_dir}: {parts}", flush=True)
     return dataset_dir
 
 
