@@ -25,7 +25,8 @@ from seglocnet_jax.data import real_align as ra
 from seglocnet_jax.data import real_convert as rconv
 from seglocnet_jax.data.loader import LoaderConfig
 from seglocnet_jax.model.config import ModelConfig
-from seglocnet_jax.sequential import settings, tracks
+from seglocnet_jax.sequential import config as seq_config
+from seglocnet_jax.sequential import tracks
 from seglocnet_jax.training import step as step_lib
 
 K = 16
@@ -140,9 +141,9 @@ def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
     odometry = tr.OdometryConfig(
         scale_sigma=0.1, yaw_bias_sigma=0.0, yaw_scale_sigma=0.0, yaw_sigma=0.0
     )
-    ev = evaluation.EvalConfig(
+    ev = sequential.EvalConfig(
         odometry=odometry,
-        tracker=evaluation.TrackerSection(lost_peak_mass=0.0, lost_entropy=1.0, off_road=0.0),
+        tracker=sequential.TrackerSettings(lost_peak_mass=0.0, lost_entropy=1.0, off_road=0.0),
     )
     cfg = sequential.tracker_config(ev, K)
     tile_centres = []
@@ -152,7 +153,7 @@ def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
         out = {"pose_tile": jnp.zeros((b, 3))}
         if volume:
             tile_centres.append(np.asarray(batch["tile_center"][0]))
-            n = batch["tile"].shape[-1] - geometry.BEV_SIZE + 1  # 257: the acquisition window
+            n = batch["tile"].shape[-1] - geometry.BEV_SIZE + 1  # 129
             vol = np.zeros((b, K, n, n), np.float32)
             if int(batch["frame_index"][0]) == 0:  # a perfect first frame
                 pose_tile = batch["pose_tile"][0]
@@ -174,7 +175,6 @@ def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
     assert np.hypot(*(centres[1:] - dead[1:, :2]).T).max() < 1.5
     assert np.hypot(*(centres[-1] - drive.poses[-1, :2])) > truth_gap - 1.5
     assert not track.lost.any()
-    assert not track.acquiring.any()  # no acquisition window by default
     assert tile_centres and len(tile_centres) == len(drive)
 
 
@@ -202,13 +202,12 @@ def _peaks_step(peaks_of, sizes=None):
     return step
 
 
-@pytest.mark.parametrize(("acquire_size", "hypotheses"), [(257, 1), (0, 1), (0, 3)])
-def test_a_far_first_peak_loses_the_truth_with_one_window_only(acquire_size, hypotheses):
+@pytest.mark.parametrize("hypotheses", [1, 3])
+def test_a_far_first_peak_loses_the_truth_with_one_window_only(hypotheses):
     """Frame 0's likelihood peaks 55 m from the truth, at the far side of the prior box, and
     (more weakly, 5 nats) at the truth; every later frame peaks at the truth alone. The window
     follows the mode: the 129-cell window drops the truth's cells at frame 0 and never finds it
-    again; the acquisition window keeps them, the truth wins from frame 2, and the filter
-    narrows; a bank of windows gives the truth's mode a window of its own, whose evidence wins
+    again; a bank of windows gives the truth's mode a window of its own, whose evidence wins
     from frame 1, and the far window is pruned."""
     drive = _straight_drive(n=12)
     wrong = drive.priors[0] + [28.0, -20.0]  # inside the +-32 m box around the prior
@@ -216,13 +215,12 @@ def test_a_far_first_peak_loses_the_truth_with_one_window_only(acquire_size, hyp
     odometry = tr.OdometryConfig(
         scale_sigma=0.0, yaw_bias_sigma=0.0, yaw_scale_sigma=0.0, yaw_sigma=0.0
     )
-    ev = evaluation.EvalConfig(
+    ev = sequential.EvalConfig(
         odometry=odometry,
-        tracker=evaluation.TrackerSection(
+        tracker=sequential.TrackerSettings(
             lost_log_odds=0.0,
             lost_peak_mass=0.0,
             lost_entropy=1.0,
-            acquire_size=acquire_size,
             hypotheses=hypotheses,
             off_road=0.0,
         ),
@@ -240,17 +238,12 @@ def test_a_far_first_peak_loses_the_truth_with_one_window_only(acquire_size, hyp
     track = _track_one(_peaks_step(peaks), _FakeSplit(_raster(2), drive), drive, cfg, odometry)
     err = np.hypot(*(track.filtered[:, :2] - drive.poses[:, :2]).T)
     assert err[0] > 50.0  # the first frame's mode is the far peak either way
-    if acquire_size:
-        assert err[2:].max() < 1.0, err
-        # narrowed once the box around the mode had held the mass for acquire_frames frames
-        assert track.acquiring[: cfg.acquire_frames].all() and not track.acquiring[-1]
-    elif hypotheses > 1:
+    if hypotheses > 1:
         assert err[1:].max() < 1.0, err
         assert track.hypotheses[0] >= 2 and track.hypotheses[-1] == 1  # the far one pruned
-        assert not track.acquiring.any()
     else:
         assert err[1:].min() > 20.0, err
-        assert not track.acquiring.any() and (track.hypotheses == 1).all()
+        assert (track.hypotheses == 1).all()
 
 
 def test_each_window_of_the_bank_learns_the_odometry_scale_of_its_own_track():
@@ -273,10 +266,10 @@ def test_each_window_of_the_bank_learns_the_odometry_scale_of_its_own_track():
             out.append((np.array([*off, truth[2]]), 40.0))
         return out
 
-    section = evaluation.TrackerSection(
+    section = sequential.TrackerSettings(
         hypotheses=2, hypothesis_prune=1000.0, lost_log_odds=0.0, lost_peak_mass=0.0, off_road=0.0
     )
-    ev = evaluation.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
+    ev = sequential.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
     cfg = sequential.tracker_config(ev, K)
     split = _FakeSplit(_raster(5), drive)
     track = _track_one(_peaks_step(peaks), split, drive, cfg, _EXACT_ODOMETRY)
@@ -319,14 +312,14 @@ def test_the_on_road_prior_drops_a_look_alike_off_the_road(off_road):
         off = wrong - np.asarray(batch["tile_center"][i])
         return [(truth, 20.0), (np.array([*off, truth[2]]), 25.0)]
 
-    section = evaluation.TrackerSection(
+    section = sequential.TrackerSettings(
         hypotheses=2,
         hypothesis_prune=1000.0,
         lost_log_odds=0.0,
         lost_peak_mass=0.0,
         off_road=off_road,
     )
-    ev = evaluation.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
+    ev = sequential.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
     cfg = sequential.tracker_config(ev, K)
     assert cfg.off_road == off_road
     split = _FakeSplit(raster, drive)
@@ -340,13 +333,15 @@ def test_the_on_road_prior_drops_a_look_alike_off_the_road(off_road):
 
 
 def test_a_null_on_road_prior_is_derived_from_the_maps_channels():
-    ev = evaluation.EvalConfig()  # the app's default: null
+    ev = sequential.EvalConfig()  # the app's default: null
     assert ev.tracker.off_road is None
-    assert sequential.tracker_config(ev, K, ("road", "building")).off_road == settings.OFF_ROAD_NATS
+    assert (
+        sequential.tracker_config(ev, K, ("road", "building")).off_road == seq_config.OFF_ROAD_NATS
+    )
     assert sequential.tracker_config(ev, K, ("building",)).off_road == 0.0  # no road to keep to
     with pytest.raises(ValueError, match="eval.tracker.off_road is null"):
         sequential.tracker_config(ev, K)
-    given = evaluation.EvalConfig(tracker=evaluation.TrackerSection(off_road=2.5))
+    given = sequential.EvalConfig(tracker=sequential.TrackerSettings(off_road=2.5))
     assert sequential.tracker_config(given, K, ("building",)).off_road == 2.5  # checked later
 
 
@@ -355,36 +350,8 @@ def test_the_on_road_prior_needs_a_road_channel():
     raster = maps.CityRaster(raster.mask[1:], raster.grid, ("building",), "town")
     cfg = tr.TrackerConfig(num_rotations=K, off_road=3.0)
     with pytest.raises(ValueError, match="off_road = 3.0 needs a 'road' channel.*'town'"):
-        settings.road_channels({"town": raster}, cfg)
-    assert settings.road_channels({"town": raster}, tr.TrackerConfig(num_rotations=K)) is None
-
-
-def test_a_loss_in_either_window_restarts_the_acquisition_window_on_the_box():
-    raster = _raster()
-    cfg = tr.TrackerConfig(num_rotations=K, acquire_size=257)
-    wide = cfg.acquisition()
-    for start_wide in (True, False):
-        belief = sequential.start_belief(raster, (-20.3, 130.7), cfg)
-        if not start_wide:
-            belief, _ = tr.narrow(belief, wide, cfg)
-        slot = tracks._Slot(
-            _straight_drive(3),
-            belief._replace(losses=jnp.int32(2)),
-            None,
-            wide if start_wide else cfg,
-            start_wide,
-        )
-        slot.held = 2
-        centre = tr.window_centre(slot.belief, slot.cfg)
-        tracks._next_window(slot, True, cfg, wide, raster)
-        assert slot.wide and slot.cfg == wide and slot.held == 0 and int(slot.belief.losses) == 2
-        np.testing.assert_allclose(tr.window_centre(slot.belief, wide), centre)
-        # the next predict keeps the window on the last estimate (the first maximum of the
-        # uniform box would be its corner)
-        np.testing.assert_array_equal(slot.map_cells[0][1:], [wide.centre, wide.centre])
-        p_xy = np.asarray(slot.belief.prob).sum(0)
-        assert p_xy[64:193, 64:193].sum() == pytest.approx(1.0, abs=1e-5)  # the box only
-        assert p_xy[:64].sum() == 0 and p_xy[:, 193:].sum() == 0
+        seq_config.road_channels({"town": raster}, cfg)
+    assert seq_config.road_channels({"town": raster}, tr.TrackerConfig(num_rotations=K)) is None
 
 
 def _peak_step(peak_of, sizes=None):
@@ -401,12 +368,12 @@ _EXACT_ODOMETRY = tr.OdometryConfig(
 def test_a_locked_drive_narrows_to_the_tracking_window(hypotheses):
     """Every frame peaks at the truth: the drive tracks it in the 129-cell window (the bank's
     windows first), narrows to the 65-cell tracking window once its box has held
-    acquire_mass for acquire_frames frames with one window left, and tracks on in it (its
-    tile 192 px)."""
+    tracks.NARROW_MASS for tracks.NARROW_FRAMES frames with one window left, and tracks on in
+    it (its tile 192 px)."""
     drive = _straight_drive(n=14)
-    ev = evaluation.EvalConfig(
+    ev = sequential.EvalConfig(
         odometry=_EXACT_ODOMETRY,
-        tracker=evaluation.TrackerSection(track_size=65, hypotheses=hypotheses, off_road=0.0),
+        tracker=sequential.TrackerSettings(track_size=65, hypotheses=hypotheses, off_road=0.0),
     )
     cfg = sequential.tracker_config(ev, K)
     sizes = []
@@ -414,10 +381,10 @@ def test_a_locked_drive_narrows_to_the_tracking_window(hypotheses):
     track = _track_one(step, _FakeSplit(_raster(3), drive), drive, cfg, _EXACT_ODOMETRY)
     err = np.hypot(*(track.filtered[:, :2] - drive.poses[:, :2]).T)
     assert err.max() < 1.0, err
-    assert not track.acquiring.any() and not track.lost[2:].any()
+    assert not track.lost[2:].any()
     first = int(np.argmax(track.narrowed))  # the first frame in the tracking window
-    assert track.narrowed[first:].all() and first >= cfg.acquire_frames
-    assert (track.hypotheses[first - cfg.acquire_frames : first] == 1).all()
+    assert track.narrowed[first:].all() and first >= tracks.NARROW_FRAMES
+    assert (track.hypotheses[first - tracks.NARROW_FRAMES : first] == 1).all()
     assert set(sizes) == {129}  # every frame localized on the full tile
 
 
@@ -436,8 +403,8 @@ def test_a_loss_in_the_tracking_window_widens_it_and_recovers():
         return p
 
     # floor 0: no prior mass where the peak jumps to, so the belief cannot simply follow it.
-    section = evaluation.TrackerSection(track_size=65, hypotheses=1, floor=0.0, off_road=0.0)
-    ev = evaluation.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
+    section = sequential.TrackerSettings(track_size=65, hypotheses=1, floor=0.0, off_road=0.0)
+    ev = sequential.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
     cfg = sequential.tracker_config(ev, K)
     track = _track_one(_peak_step(peak), _FakeSplit(_raster(4), drive), drive, cfg, _EXACT_ODOMETRY)
     assert track.narrowed[8:12].all()  # locked and narrow before the jump
@@ -492,7 +459,19 @@ def test_streamed_temperature_fit_matches_the_in_memory_fit():
         v, c = volumes[i : i + 64], cells[i : i + 64]
         fit.add(np.concatenate([v, v[:3]]), np.concatenate([c, c[:3]]), [1] * len(c) + [0] * 3)
     assert fit.count == 400
-    in_memory = tr.fit_temperature(volumes, cells)
+    # the objective on a fine grid, all frames at once (float64)
+    grid = np.geomspace(1.0, 16.0, 400)
+    flat_v = volumes.reshape(400, -1).astype(np.float64)
+    gt = flat_v[np.arange(400), flat]
+    objective = [
+        np.mean(
+            gt / t
+            - np.log(np.exp(flat_v / t - (flat_v / t).max(1, keepdims=True)).sum(1))
+            - (flat_v / t).max(1)
+        )
+        for t in grid
+    ]
+    in_memory = grid[int(np.argmax(objective))]
     assert abs(fit.result() / in_memory - 1) < 0.03, (fit.result(), in_memory)
     assert abs(fit.result() / 4.0 - 1) < 0.15
 
@@ -579,7 +558,6 @@ def test_summary_follows_the_documented_definitions():
         above=np.where(err < 1.0, 0.3, np.inf),
         log_p_gt=np.where(err < 1.0, -2.0, -5.0),
         lost=lost,
-        acquiring=np.arange(n) < 6,
         narrowed=np.arange(n) >= 21,
         hypotheses=np.where(np.arange(n) < 4, 3, 1),
         scale=np.full(n, 1.01),
@@ -595,7 +573,6 @@ def test_summary_follows_the_documented_definitions():
     assert s["mean_log_p_gt"] == pytest.approx((-2.0 * 15 - 5.0 * 15) / 30)
     assert s["coverage"]["0.5"] == s["coverage_90"] == pytest.approx(100 * 15 / 30)
     assert s["filtered"]["count"] == s["single"]["count"] == n
-    assert d["frames_acquiring"] == 6 and s["acquiring_pct"] == pytest.approx(20.0)
     assert d["frames_narrowed"] == 9 and s["narrowed_pct"] == pytest.approx(30.0)
     assert d["frames_multi_hypothesis"] == 4 and d["odometry_scale"] == 1.01
     assert s["hypotheses_mean"] == pytest.approx((4 * 3 + 26) / 30)
@@ -655,13 +632,12 @@ def _tree(data_root, **eval_):
 
 
 def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, capsys):
-    # With the acquisition window (off by default; one window, not the default bank) and the
-    # tracking window (on by default), each left after one frame: the app's path through all
-    # three windows (acquisition -> 129 cells -> 65 cells) within the short drives.
-    # With the on-road prior (off by default): the acquisition window's larger tile too.
-    tracker = {"acquire_size": 257, "hypotheses": 1, "acquire_frames": 1, "off_road": 5.0}
+    # With one window (not the default bank) and the tracking window (on by default): the
+    # app's path through both windows (129 cells -> 65 cells) within the short drives.
+    # With a given on-road prior (null by default: derived from the map).
+    tracker = {"hypotheses": 1, "off_road": 5.0}
     cfg = build_experiment(_tree(data_root, bev_source="gt", tracker=tracker))
-    assert cfg.eval.tracker.acquire_size == 257 and cfg.eval.tracker.track_size == 65
+    assert cfg.eval.tracker.hypotheses == 1 and cfg.eval.tracker.track_size == 65
     assert cfg.eval.tracker.off_road == 5.0
     key = (cfg.model, cfg.solver, "gt", "volume")
     before = evaluation.TRACE_COUNTS.get(key, 0)
@@ -700,15 +676,11 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
     assert s["filter_ms_per_frame"] > 0 and sum(d["frames"] for d in s["per_drive"]) == s["frames"]
     assert s["score_ms_per_frame"] > 0  # the GT's read-out, timed apart from the filter's
     assert s["compile_ms_per_frame"] >= 0  # later compilations, timed apart
-    # Two programs for every frame: the batch of 129-cell windows (the tracking window's frames
-    # too: the centre of their volume) and one acquisition window (drive by drive), where each
-    # drive spends its first frame; then a frame in the 129-cell window, then the 65-cell one.
-    assert evaluation.TRACE_COUNTS[key] - before == 2
-    assert all(d["frames_acquiring"] >= 1 for d in s["per_drive"]) and s["acquiring_pct"] > 0
+    # One program for every frame: the batch of 129-cell windows (the tracking window's frames
+    # too: the centre of their volume).
+    assert evaluation.TRACE_COUNTS[key] - before == 1
     assert all(d["frames_narrowed"] >= 1 for d in s["per_drive"]) and s["narrowed_pct"] > 0
-    arrays = np.load(os.path.join(workdir, "sequential", "drives_val.npz"))
-    assert not (arrays["narrowed"] & arrays["acquiring"]).any()
-    assert "in tracking window (%)" in out
+    assert "in tracking window (%)" in out and "acquisition" not in out
     assert "seq_test [hd_road-building, gt] drives_val filtered" in out
     assert "GT in 90% region (%)" in out and "[seglocnet] sequential evaluation:" in out
     figures = sorted(os.listdir(os.path.join(workdir, "figures", "sequential")))
@@ -736,7 +708,7 @@ def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, cap
     s = saved["sequential"]["drives_val"]
     assert s["temperature"] == 200.0 and s["temperature_fit"] is None
     # The on-road prior, null by default: derived from the map's road channel.
-    assert cfg.eval.tracker.off_road is None and s["off_road"] == settings.OFF_ROAD_NATS
+    assert cfg.eval.tracker.off_road is None and s["off_road"] == seq_config.OFF_ROAD_NATS
     assert s["filtered"]["count"] == s["single"]["count"] == s["frames"] > 0
     assert "| seq_test [hd_road-building, tiny-seg] test |" in out
     assert "| seq_test [hd_road-building, tiny-seg] drives_val filtered |" in out
@@ -766,9 +738,9 @@ def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, cap
         ({"temperature_drives": "kouvola"}, "eval.temperature_drives: split 'kouvola'"),
         ({"temperature_scales": [4.0, 1.0]}, "eval.temperature_scales"),
         ({"temperature_scales": [0.0, 1.0]}, "eval.temperature_scales"),
-        ({"tracker": {"outlier": 1.0}}, "outlier"),
-        ({"tracker": {"acquire_size": 257}}, "hypotheses = 4 needs outlier = 0 and acquire_size"),
-        ({"tracker": {"outlier": 0.1, "hypotheses": 1}}, "track_size = 65 needs outlier = 0"),
+        ({"tracker": {"acquire_size": 257}}, "eval.tracker.acquire_size"),  # deleted: unknown
+        ({"tracker": {"sigma_xy": 0.1}}, "eval.tracker.sigma_xy"),  # from eval.odometry only
+        ({"tracker": {"track_size": 64}}, "track_size"),
         ({"mode": "video"}, "eval.mode"),
         ({"temperature": -1.0}, "eval.temperature"),
         ({"max_drives": 0}, "eval.max_drives"),
@@ -843,7 +815,7 @@ def _convert_argoverse(tmp_path):
 @pytest.mark.parametrize("convert", [_convert_nuscenes, _convert_argoverse], ids=["nus", "av2"])
 def test_scenes_and_logs_are_tracked_through_the_same_records(tmp_path, convert):
     ddir, variant, channels = convert(tmp_path)
-    ev = evaluation.EvalConfig(
+    ev = sequential.EvalConfig(
         bev_source="gt",
         mode="sequential",
         sequential_splits=("val",),

@@ -4,20 +4,17 @@ Every sequence (a simulated drive, a nuScenes scene, an AV2 log) of a split is t
 Bayes filter over the solver's pose grid (:mod:`seglocnet_jax.tracking`), frame by frame::
 
     frame 0:  belief = uniform over the 129 x 129 x K cells around the record's stored prior
-              (the prior box); with eval.tracker.acquire_size (off by default) inside the
-              257 x 257 acquisition window; with eval.tracker.hypotheses > 1 its posterior is
-              split among windows that cover it (tracking.hypotheses), every later step
-              below then runs per window and the windows are weighted by their evidence
+              (the prior box); with eval.tracker.hypotheses > 1 its posterior is split among
+              windows that cover it (tracking.hypotheses), every later step below then runs
+              per window and the windows are weighted by their evidence
     frame t:  belief = predict(belief, odometry[t])          # the vehicle's own odometry
               tile   = the map raster cut around the belief's window centre (never the truth)
               volume = the one localize step (evaluation.make_localize_step, volume variant)
               belief = update(belief, log_softmax(volume / T))   # loss detection + re-widening
               (eval.tracker.off_road > 0: plus the on-road prior of the tile's road channel)
-              (acquisition window: narrowed to the 129-cell window once the box around the
-              mode holds the belief; a detected loss goes back to it. Tracking window,
-              eval.tracker.track_size: one window left and locked on, the filter narrows to
-              the box of that many cells around the mode, its likelihood the centre of the
-              volume; a detected loss widens it back)
+              (tracking window, eval.tracker.track_size: one window left and locked on, the
+              filter narrows to the box of that many cells around the mode, its likelihood
+              the centre of the volume; a detected loss widens it back)
 
 What the filter reads: the sensors (through the network or, for ``bev_source="gt"``, the GT
 labels), the map, the first frame's stored coarse prior and the odometry. The odometry is the
@@ -68,9 +65,10 @@ Per split (:func:`summarize`), with these definitions:
   first ``WARMUP_STEPS`` lockstep steps (compilation); ``index_s``: reading the split's
   sequence metadata (every record decoded once); ``seconds``: the split, all included.
 
-Modules: :mod:`.drives` (the drives of a split), :mod:`.temperature` (the streamed fit),
-:mod:`.tracks` (the filter's config, its windows and the lockstep loop), :mod:`.report`
-(numbers, arrays, figures);
+Modules: :mod:`.config` (the ``eval`` settings and the filter's config built from them),
+:mod:`.drives` (the drives of a split), :mod:`.temperature` (the streamed fit),
+:mod:`.tracks` (the filter's windows and the lockstep loop), :mod:`.report` (numbers, arrays,
+figures);
 :func:`evaluate_sequential` ties them for the apps.
 """
 
@@ -80,7 +78,8 @@ import os
 import time
 
 from seglocnet_jax import viz
-from seglocnet_jax.evaluation import EvalConfig, LocalizeStep
+from seglocnet_jax.evaluation import LocalizeStep
+from seglocnet_jax.sequential.config import EvalConfig, TrackerSettings, tracker_config
 from seglocnet_jax.sequential.drives import Drive, DriveSplit, drive_seed
 from seglocnet_jax.sequential.report import (
     CONVERGED_M,
@@ -94,7 +93,6 @@ from seglocnet_jax.sequential.report import (
     write_arrays,
     write_figures,
 )
-from seglocnet_jax.sequential.settings import tracker_config
 from seglocnet_jax.sequential.temperature import (
     TemperatureFit,
     choose_filter_temperature,
@@ -114,6 +112,8 @@ __all__ = [
     "MAX_LOST_RUN",
     "RECOVERY_FRAMES",
     "MASSES",
+    "EvalConfig",
+    "TrackerSettings",
     "tracker_config",
     "drive_seed",
     "TemperatureFit",

@@ -34,8 +34,8 @@ def _objective(volume, cells, weights, log_t):
 
 class TemperatureFit:
     """Streaming fit of the likelihood temperature: the ``T`` maximizing the mean
-    ``log_softmax(volume / T)[gt cell]`` (the very log-likelihood the filter is fed; the
-    objective of :func:`tracking.fit_temperature`), accumulated per batch on
+    ``log_softmax(volume / T)[gt cell]`` (the very log-likelihood the filter is fed),
+    accumulated per batch on
     :data:`TEMPERATURE_GRID` and refined by a parabola in ``log T`` through the best three grid
     points. Memory: one batch of volumes at a time."""
 

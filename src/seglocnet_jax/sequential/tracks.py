@@ -15,8 +15,8 @@ from tqdm import tqdm
 
 from seglocnet_jax import geometry, solver, tracking
 from seglocnet_jax.evaluation import LocalizeStep
+from seglocnet_jax.sequential.config import road_channels
 from seglocnet_jax.sequential.drives import Drive, DriveSplit, drive_seed
-from seglocnet_jax.sequential.settings import road_channels
 from seglocnet_jax.tracking import hypotheses
 from seglocnet_jax.tracking import odometry as odometry_lib
 
@@ -26,6 +26,11 @@ WARMUP_STEPS = 2  # lockstep steps left out of the per-frame timings (compilatio
 # dominate a mean over a drive.
 LOG_P_FLOOR_P = 1e-12
 LOG_P_FLOOR = float(np.log(LOG_P_FLOOR_P))
+# A drive down to one window narrows to the tracking window once the box around the mode has
+# held this much of the belief for this many frames in a row (one confident frame may be
+# confidently wrong).
+NARROW_MASS = 0.99
+NARROW_FRAMES = 3
 
 
 class CompileClock:
@@ -64,15 +69,9 @@ def filter_tile(raster, belief: tracking.Belief, cfg: tracking.TrackerConfig):
 
 def start_belief(raster, prior_xy, cfg: tracking.TrackerConfig) -> tracking.Belief:
     """Frame 0's belief: uniform over the window around the coarse prior (the prior box) and
-    over yaw, on the lattice of the raster's pixel corners. With an acquisition window
-    (``cfg.acquire_size``) the belief is that larger window's, uniform over the same box and
-    zero outside it."""
+    over yaw, on the lattice of the raster's pixel corners."""
     grid = raster.grid
-    wide = cfg.acquisition()
-    if wide is None:
-        return tracking.init_belief(cfg, prior_xy, origin=(grid.x_min, grid.y_max))
-    box = cfg.centre * cfg.resolution  # the cfg window's half-width: the prior box
-    return tracking.init_belief(wide, prior_xy, origin=(grid.x_min, grid.y_max), box=box)
+    return tracking.init_belief(cfg, prior_xy, origin=(grid.x_min, grid.y_max))
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
@@ -128,7 +127,6 @@ class Track:
     above: np.ndarray  # (T,) posterior mass more probable than the GT cell (inf: outside)
     log_p_gt: np.ndarray  # (T,) log posterior of the GT cell (clamped: LOG_P_FLOOR)
     lost: np.ndarray  # (T,) bool, the filter detected a track loss at this frame
-    acquiring: np.ndarray  # (T,) bool, this frame was tracked in the acquisition window
     narrowed: np.ndarray  # (T,) bool, this frame was tracked in the tracking window
     hypotheses: np.ndarray  # (T,) int, windows tracked after this frame (tracking.hypotheses)
     scale: np.ndarray  # (T,) the odometry distance scale estimated after this frame
@@ -143,17 +141,17 @@ class _Slot:
     ``cfg.hypotheses`` > 1 a bank of them, heaviest first), their log weights and each
     window's own odometry-scale estimate, learned from that window's mode track (a window
     that wins late keeps the scale of its own track, not the one learned on the window that
-    led before it); ``cfg`` is the windows' (the acquisition window's while ``wide``)."""
+    led before it); ``cfg`` is the windows' (the tracking window's once narrowed)."""
 
-    def __init__(self, drive: Drive, belief, odometry, cfg, wide: bool):
+    def __init__(self, drive: Drive, belief, odometry, cfg):
         self.drive, self.odometry, self.t = drive, odometry, 0
         self.beliefs, self.log_w = [belief], [0.0]
         self.map_cells = [None]  # (3,) of each window's last posterior
         self.infos = [None]  # each window's last update info
-        self.cfg, self.wide = cfg, wide  # wide: in the acquisition window
+        self.cfg = cfg
         self.scales = [odometry_lib.ScaleEstimate(cfg.scale_prior_m)]  # one per window
         self.modes = [None]  # (3,) world, each window's last posterior mode (read out)
-        self.held = 0  # consecutive frames the next smaller window's box held acquire_mass
+        self.held = 0  # consecutive frames the tracking window's box held NARROW_MASS
         self.out = collections.defaultdict(list)
 
     @property
@@ -188,17 +186,11 @@ def track_split(
     width, a window's first frame), each left out of the others. Fewer drives than
     ``batch_size``: the batch is that many (no padded rows computed for nothing).
 
-    With an acquisition window (``cfg.acquire_size``) each drive starts in it
-    (:func:`start_belief`); its frames go through the localize step one drive at a time (the
-    larger tile: a program of its own), and the drive narrows to ``cfg``'s window once the box
-    around the mode has held ``cfg.acquire_mass`` for ``cfg.acquire_frames`` frames in a row
-    (:func:`tracking.narrow`). A detected loss sends
-    the drive back to the acquisition window, uniform over the box around its last estimate.
-    With a tracking window (``cfg.track_size``) a drive down to one window narrows to it the
-    same way (:func:`_next_window`); its frames are localized on ``cfg``'s tile around the
-    window centre, and the window's likelihood is the volume's centre."""
+    With a tracking window (``cfg.track_size``) a drive down to one window narrows to it once
+    the box around the mode has held :data:`NARROW_MASS` for :data:`NARROW_FRAMES` frames in
+    a row (:func:`_next_window`); its frames are localized on ``cfg``'s tile around the window
+    centre, and the window's likelihood is the volume's centre."""
     batch_size = max(1, min(batch_size, len(drives)))
-    wide_cfg = cfg.acquisition()
     road_of = road_channels(split.rasters, cfg)  # None: no on-road prior
     pending = collections.deque(drives)
     slots: list[_Slot | None] = [None] * batch_size
@@ -223,8 +215,7 @@ def track_split(
                     d.poses, d.timestamps, odometry_cfg, drive_seed(odometry_seed, d.sequence_id)
                 )
                 belief = start_belief(raster, d.priors[0], cfg)
-                wide = wide_cfg is not None
-                slots[s] = _Slot(d, belief, np.asarray(odo), wide_cfg if wide else cfg, wide)
+                slots[s] = _Slot(d, belief, np.asarray(odo), cfg)
 
     def road(rows, active):
         """The rows' road channels ``(B, T, T)`` (None without the on-road prior)."""
@@ -236,12 +227,10 @@ def track_split(
     def volumes(filter_rows, active):
         """The log-likelihood volume of each row (``active``: its slot): the ``cfg`` tiles in
         padded batches of ``batch_size`` (a tracking window's too: its likelihood is the
-        volume's centre), each acquiring one on its own; with ``cfg.off_road``, plus the
-        on-road prior of each row's tile."""
+        volume's centre); with ``cfg.off_road``, plus the on-road prior of each row's tile."""
         out = {}
-        narrow = [j for j, s in enumerate(active) if not slots[s].wide]
-        for start in range(0, len(narrow), batch_size):
-            chunk = narrow[start : start + batch_size]
+        for start in range(0, len(active), batch_size):
+            chunk = list(range(start, min(start + batch_size, len(active))))
             chunk_slots = [active[j] for j in chunk]
             rows = [filter_rows[j] for j in chunk]
             rows += [rows[0]] * (batch_size - len(rows))  # static shapes
@@ -249,11 +238,6 @@ def track_split(
             vol = step(params, place(_stack(rows)), volume=True)["volume"]
             lik = _log_likelihood(vol, temperature, road(rows, chunk_slots), cfg.off_road)
             out.update({j: lik[i] for i, j in enumerate(chunk)})  # (K, N, N) each
-        for j, s in enumerate(active):
-            if slots[s].wide:
-                vol = step(params, place(_stack([filter_rows[j]])), volume=True)["volume"]
-                road_j = road([filter_rows[j]], [s])
-                out[j] = _log_likelihood(vol, temperature, road_j, cfg.off_road)[0]
         jax.block_until_ready(out)  # dispatch is asynchronous: time the steps, not the filter
         return out
 
@@ -280,10 +264,7 @@ def track_split(
                                 jnp.maximum(1.0 - moved["dropped"], 1e-30)
                             )
                     # the tracking window's tile is cfg's: its volume's centre is the window
-                    tile_cfg = slot.cfg if slot.wide else cfg
-                    tile, centre = filter_tile(
-                        split.rasters[slot.drive.city], slot.beliefs[i], tile_cfg
-                    )
+                    tile, centre = filter_tile(split.rasters[slot.drive.city], slot.beliefs[i], cfg)
                     pose = np.asarray(row["pose"], np.float64)
                     filter_rows.append(
                         {
@@ -360,10 +341,9 @@ def track_split(
                 slot.out["above"].append(float(above))
                 slot.out["log_p_gt"].append(float(log_p))
                 slot.out["lost"].append(lost)
-                slot.out["acquiring"].append(slot.wide)
                 slot.out["narrowed"].append(slot.cfg.size < cfg.size)
                 slot.out["hypotheses"].append(len(slot.beliefs))
-                _next_window(slot, lost, cfg, wide_cfg, split.rasters[slot.drive.city])
+                _next_window(slot, lost, cfg)
                 slot.t += 1
                 if slot.t == len(slot.drive):
                     done[slot.drive.sequence_id] = Track(
@@ -420,39 +400,21 @@ def _weigh_windows(slot: _Slot, cfg: tracking.TrackerConfig, *, first: bool) -> 
     slot.log_w = list(log_w)
 
 
-def _next_window(slot: _Slot, lost: bool, cfg, wide_cfg, raster) -> None:
-    """The window the slot's next frame is tracked in. With an acquisition window, a detected
-    loss (in any window) starts it again, uniform over the box around the window centre (the
-    last estimate; the loss count kept); without one the update has reset the belief in the
-    ``cfg`` window already. A window narrows to the next smaller one (acquisition -> ``cfg``
-    -> tracking window, the last only with one window left) once the smaller box around the
-    mode has held ``cfg.acquire_mass`` for ``cfg.acquire_frames`` frames in a row
-    (:func:`tracking.narrow`)."""
-    if lost and wide_cfg is not None:
-        losses = slot.belief.losses
-        belief = start_belief(raster, tracking.window_centre(slot.belief, slot.cfg), cfg)
-        slot.cfg, slot.wide, slot.held = wide_cfg, True, 0
-        # The next predict moves the window with the last estimate's heading, centre kept (the
-        # uniform belief's own first maximum is a corner of the box: the window would jump).
-        k = 0 if slot.map_cells[0] is None else slot.map_cells[0][0]
-        cell = jnp.stack([jnp.asarray(k, jnp.int32), *[jnp.int32(wide_cfg.centre)] * 2])
-        slot.beliefs, slot.map_cells, slot.infos = [belief._replace(losses=losses)], [cell], [None]
-        slot.scales, slot.modes = slot.scales[:1], slot.modes[:1]  # the heaviest window's
-        return
+def _next_window(slot: _Slot, lost: bool, cfg) -> None:
+    """The window the slot's next frame is tracked in: a drive down to one ``cfg`` window
+    narrows to the tracking window once its box around the mode has held :data:`NARROW_MASS`
+    for :data:`NARROW_FRAMES` frames in a row (:func:`tracking.narrow`); a detected loss
+    restarts the count (the update has reset the belief in the ``cfg`` window already)."""
     track_cfg = cfg.tracking_window()
     if lost:
         slot.held = 0
         return
-    if slot.wide:
-        smaller = cfg
-    elif slot.cfg is cfg and track_cfg is not None and len(slot.beliefs) == 1:
-        smaller = track_cfg
-    else:
+    if not (slot.cfg is cfg and track_cfg is not None and len(slot.beliefs) == 1):
         return
-    belief, kept = tracking.narrow(slot.belief, slot.cfg, smaller, map_cell=slot.map_cells[0])
-    slot.held = slot.held + 1 if float(kept) >= cfg.acquire_mass else 0
-    if slot.held >= cfg.acquire_frames:
+    belief, kept = tracking.narrow(slot.belief, slot.cfg, track_cfg, map_cell=slot.map_cells[0])
+    slot.held = slot.held + 1 if float(kept) >= NARROW_MASS else 0
+    if slot.held >= NARROW_FRAMES:
         # the next predict finds the mode in the new window
         slot.beliefs, slot.map_cells, slot.infos = [belief], [None], [None]
         slot.scales, slot.modes = slot.scales[:1], slot.modes[:1]
-        slot.cfg, slot.wide, slot.held = smaller, False, 0
+        slot.cfg, slot.held = track_cfg, 0
