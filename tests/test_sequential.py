@@ -26,7 +26,7 @@ from seglocnet_jax.data import real_convert as rconv
 from seglocnet_jax.data.loader import LoaderConfig
 from seglocnet_jax.model.config import ModelConfig
 from seglocnet_jax.sequential import config as seq_config
-from seglocnet_jax.sequential import tracks
+from seglocnet_jax.sequential import drive_filter, tracks
 from seglocnet_jax.training import step as step_lib
 
 K = 16
@@ -367,9 +367,9 @@ _EXACT_ODOMETRY = tr.OdometryConfig(
 @pytest.mark.parametrize("hypotheses", [1, 3])
 def test_a_locked_drive_narrows_to_the_tracking_window(hypotheses):
     """Every frame peaks at the truth: the drive tracks it in the 129-cell window (the bank's
-    windows first), narrows to the 65-cell tracking window once its box has held
-    tracks.NARROW_MASS for tracks.NARROW_FRAMES frames with one window left, and tracks on in
-    it (its tile 192 px)."""
+    windows first), narrows to the 65-cell tracking window once its box has held NARROW_MASS
+    for NARROW_FRAMES frames with one window left (drive_filter), and tracks on in it (its
+    tile 192 px)."""
     drive = _straight_drive(n=14)
     ev = sequential.EvalConfig(
         odometry=_EXACT_ODOMETRY,
@@ -383,8 +383,8 @@ def test_a_locked_drive_narrows_to_the_tracking_window(hypotheses):
     assert err.max() < 1.0, err
     assert not track.lost[2:].any()
     first = int(np.argmax(track.narrowed))  # the first frame in the tracking window
-    assert track.narrowed[first:].all() and first >= tracks.NARROW_FRAMES
-    assert (track.hypotheses[first - tracks.NARROW_FRAMES : first] == 1).all()
+    assert track.narrowed[first:].all() and first >= drive_filter.NARROW_FRAMES
+    assert (track.hypotheses[first - drive_filter.NARROW_FRAMES : first] == 1).all()
     assert set(sizes) == {129}  # every frame localized on the full tile
 
 
@@ -437,7 +437,7 @@ def test_the_tracking_windows_likelihood_is_the_centre_of_its_tiles_volume():
         pose = np.array([*(centre + rng.uniform(-15.0, 15.0, 2)), rng.uniform(-np.pi, np.pi)])
         in_tile = np.array([*(pose[:2] - centre), pose[2]])
         full = np.round(geometry.pose_to_cell(in_tile, K, size=129)).astype(int)
-        cell = np.asarray(tracks._gt_cell(belief, pose, narrow_cfg))
+        cell = np.asarray(drive_filter._gt_cell(belief, pose, narrow_cfg))
         np.testing.assert_array_equal(cell[1:], full[1:] - 32)
         k = full[0] % K
         assert window[k, cell[1], cell[2]] == volume[k, full[1], full[2]]
@@ -478,8 +478,8 @@ def test_streamed_temperature_fit_matches_the_in_memory_fit():
 
 def _readout(beliefs, log_w, pose, cfg):
     """The credible mass and log p of the GT pose, as the lockstep loop reads them out."""
-    cells = [tracks._gt_cell(b, pose, cfg) for b in beliefs]
-    return tr.hypotheses.mixture_readout(beliefs, log_w, cells, cfg, tracks.LOG_P_FLOOR_P)
+    cells = [drive_filter._gt_cell(b, pose, cfg) for b in beliefs]
+    return tr.hypotheses.mixture_readout(beliefs, log_w, cells, cfg, drive_filter.LOG_P_FLOOR_P)
 
 
 def test_readout_credible_mass_is_the_credible_region_test():
@@ -492,11 +492,11 @@ def test_readout_credible_mass_is_the_credible_region_test():
         above, log_p = _readout([belief], [0.0], pose, cfg)
         for mass in (0.5, 0.9, 0.99):
             assert bool(above < mass) == bool(tr.in_credible_region(belief, np.array(cell), mass))
-        want = max(math.log(float(prob[cell])), tracks.LOG_P_FLOOR)
+        want = max(math.log(float(prob[cell])), drive_filter.LOG_P_FLOOR)
         assert float(log_p) == pytest.approx(want, abs=1e-5)
     outside = tr.cell_to_world(belief, np.array([0.0, 4.0, 20.0], np.float32), cfg)
     above, log_p = _readout([belief], [0.0], outside, cfg)
-    assert math.isinf(float(above)) and float(log_p) == pytest.approx(tracks.LOG_P_FLOOR)
+    assert math.isinf(float(above)) and float(log_p) == pytest.approx(drive_filter.LOG_P_FLOOR)
 
 
 def test_readout_of_a_bank_is_the_mixtures():
@@ -532,7 +532,7 @@ def test_readout_mode_is_the_solvers_refined_peak():
         belief = tr.init_belief(cfg, (10.0, 20.0))._replace(prob=jnp.asarray(prob, jnp.float32))
         mode = tr.estimate(belief, cfg)["map_cell"]
         np.testing.assert_array_equal(mode, peak)
-        pose = tracks._readout(belief, mode, cfg)
+        pose = drive_filter._readout(belief, mode, cfg)
         cell, _ = solver.decode_cell(jnp.log(jnp.asarray(prob, jnp.float32)))
         want = tr.cell_to_world(belief, cell, cfg)
         np.testing.assert_allclose(pose[:2], want[:2], atol=1e-4)

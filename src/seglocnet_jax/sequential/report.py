@@ -10,8 +10,8 @@ import re
 import numpy as np
 
 from seglocnet_jax import fileio, metrics, viz
+from seglocnet_jax.sequential.drive_filter import Track
 from seglocnet_jax.sequential.drives import DriveSplit
-from seglocnet_jax.sequential.tracks import Track
 
 TRACKED_M = 5.0  # m: a frame is tracked when the filtered error is at most this, else lost
 CONVERGED_M = 2.0  # m: converged / recovered when the error is at most this

@@ -102,42 +102,26 @@ def fit_temperature(
 
 
 def choose_filter_temperature(
-    step: LocalizeStep,
-    params,
-    split,
-    drives,
-    *,
-    base: float,
-    scales,
-    cfg,
-    odometry_cfg,
-    odometry_seed: int,
-    batch_size: int,
-    place,
+    track, split, drives, *, base: float, scales
 ) -> tuple[float, list[dict]]:
     """The filter's temperature, chosen on validation drives: ``drives`` (of the
     :class:`~seglocnet_jax.sequential.drives.DriveSplit` ``split``) are tracked at
-    ``base * s`` for each scale ``s`` (the volume step only, no single-frame pass) and the
-    ``T`` with the best mean log posterior of the GT cell (the filter's log score, clamped at
-    ``tracks.LOG_P_FLOOR``: a proper score, so it rewards a posterior that is both sharp and
-    calibrated) is returned, with one row per candidate (``scale``, ``temperature``,
-    ``mean_log_p_gt``, ``tracked_pct``, ``R@1m``, ``coverage_90``)."""
-    from seglocnet_jax.sequential import report, tracks  # the drives' loop and numbers
+    ``base * s`` for each scale ``s`` (``track(split, drives, temperature=, desc=, single=)``:
+    :func:`~seglocnet_jax.sequential.tracks.track_split` with the run's filter; the volume
+    step only, no single-frame pass) and the ``T`` with the best mean log posterior of the GT
+    cell (the filter's log score, clamped at ``drive_filter.LOG_P_FLOOR``: a proper score, so
+    it rewards a posterior that is both sharp and calibrated) is returned, with one row per
+    candidate (``scale``, ``temperature``, ``mean_log_p_gt``, ``tracked_pct``, ``R@1m``,
+    ``coverage_90``)."""
+    from seglocnet_jax.sequential import report  # the numbers of the tracks
 
     table = []
     for scale in scales:
         t = float(base) * float(scale)
-        out, _ = tracks.track_split(
-            step,
-            params,
+        out, _ = track(
             split,
             drives,
-            cfg=cfg,
-            odometry_cfg=odometry_cfg,
-            odometry_seed=odometry_seed,
             temperature=t,
-            batch_size=batch_size,
-            place=place,
             desc=f"filter temperature {t:.3g} ({split.name})",
             single=False,
         )
