@@ -4,6 +4,7 @@ the streamed temperature fit, the credible-region read-out, the metric definitio
 validation, and whole drives through the evaluate and train apps (GT BEV: near-perfect
 tracking; results.json, the tables, the figures) and on converted nuScenes / AV2 fixtures."""
 
+import dataclasses
 import json
 import math
 import os
@@ -114,10 +115,27 @@ def _straight_drive(n=30, spacing=5.0):
     )
 
 
+class _FakeStep:
+    """A localize step whose outputs ``tiles(params, batch, figures, volume)`` makes from the
+    batch of tiles alone (the network's side is nothing here)."""
+
+    def __init__(self, tiles):
+        self.tiles = tiles
+
+    def network(self, params, batch):
+        return None
+
+    def solve(self, params, bev, batch, rows=None, *, figures=False, volume=False):
+        return self.tiles(params, batch, figures, volume)
+
+    def __call__(self, params, batch, figures=False, volume=False):
+        return self.tiles(params, batch, figures, volume)
+
+
 def _track_one(step, split, drive, cfg, odometry):
     """``drive`` through the lockstep loop the apps run (batch 1, T = 1, odometry seed 0)."""
     (track,), _ = sequential.track_split(
-        step,
+        _FakeStep(step),
         None,
         split,
         [drive],
@@ -443,6 +461,151 @@ def test_the_tracking_windows_likelihood_is_the_centre_of_its_tiles_volume():
         assert window[k, cell[1], cell[2]] == volume[k, full[1], full[2]]
 
 
+# --------------------------------------------------------------------------- the network, once
+
+
+class _SensorSplit:
+    """Drives over one raster whose rows carry a network's inputs (synthetic sensors, cycled)
+    and the stored prior's tile: what a DriveSplit gives the localize step."""
+
+    name = "sensors"
+
+    def __init__(self, raster, drives, sensors):
+        self.rasters = {raster.name: raster}
+        self.frames = {int(r): (d, t) for d in drives for t, r in enumerate(d.records)}
+        self.sensors = sensors
+
+    def rows(self, indices):
+        out = []
+        for i in indices:
+            drive, t = self.frames[int(i)]
+            tile, centre = self.rasters[drive.city].tile(*drive.priors[t])
+            pose = drive.poses[t]
+            row = {k: v[int(i) % len(v)] for k, v in self.sensors.items()}
+            row.update(
+                tile=tile.astype(np.float32),
+                tile_center=np.asarray(centre, np.float64),
+                pose_tile=np.array([*(pose[:2] - centre), pose[2]], np.float32),
+                pose=pose,
+                frame_index=np.int64(t),
+            )
+            out.append(row)
+        return out
+
+
+class _CountingStep:
+    """The localize step, counting the rows each network pass and each solve got."""
+
+    def __init__(self, step):
+        self.step, self.network_rows, self.solved_rows = step, [], []
+
+    def network(self, params, batch):
+        self.network_rows.append(len(batch["tile"]))
+        return self.step.network(params, batch)
+
+    def solve(self, params, bev, batch, rows=None, **kw):
+        self.solved_rows.append(len(batch["tile"]))
+        return self.step.solve(params, bev, batch, rows, **kw)
+
+
+class _PerTileStep:
+    """The path before the network ran once per frame: the whole step (network and solver) for
+    every tile, on the frame's row with that tile."""
+
+    def __init__(self, step):
+        self.step = step
+
+    def network(self, params, batch):
+        return batch  # nothing runs yet
+
+    def solve(self, params, bev, batch, rows=None, *, figures=False, volume=False):
+        frame = bev if rows is None else {k: v[np.asarray(rows)] for k, v in bev.items()}
+        return self.step(params, {**frame, "tile": batch["tile"]}, figures=figures, volume=volume)
+
+
+def _network_drives(frames=4):
+    """Two drives over one raster with a tiny network's inputs: the split, its drives, the
+    network's parameters and the preset."""
+    from seglocnet_jax.model import api, synthetic
+    from seglocnet_jax.model.config import preset
+
+    raster = _raster(5)
+    drives = []
+    for d in range(2):
+        drive = _straight_drive(n=frames)
+        drive.sequence_id, drive.records = f"drive-{d}", drive.records + frames * d
+        drive.poses[:, :2] += [10.0 * d, -8.0 * d]
+        drive.priors = drive.poses[:, :2] + [6.0, -4.0 + 3 * d]
+        drives.append(drive)
+    sensors = synthetic.make_batch(0, 4, num_cams=2, image_hw=(32, 64), num_points=2048)
+    keys = ("images", "intrinsics", "cam_to_ego", "points", "points_mask", "bev_gt")
+    split = _SensorSplit(raster, drives, {k: sensors[k] for k in keys})
+    example = {k: np.asarray(v)[:1] for k, v in _stack_rows(split.rows([0])).items()}
+    return split, drives, example, api, preset
+
+
+def _place(batch):
+    return {k: jnp.asarray(v) for k, v in batch.items() if k not in step_lib.HOST_ONLY_KEYS}
+
+
+def test_the_network_runs_once_per_frame_and_the_tracks_are_the_per_tile_ones():
+    """Two drives in lockstep through the default filter (a bank of windows, the tracking
+    window, the on-road prior) with a (random) tiny network: one network pass per lockstep
+    step covers every drive's frame, and the solver matches that BEV against every window's
+    tile and the prior tile; the tracks equal those of the network rerun for every tile."""
+    split, drives, example, api, preset = _network_drives()
+    params = api.init(jax.random.key(0), example, preset("tiny"))
+    step = evaluation.make_localize_step(preset("tiny"), solver.SolverConfig(num_rotations=K))
+    raster = split.rasters["town"]
+    cfg = sequential.tracker_config(sequential.EvalConfig(), K, raster.channels)
+
+    def run(s):
+        out, _ = sequential.track_split(
+            s, params, split, drives, cfg=cfg, odometry_cfg=tr.OdometryConfig(),
+            odometry_seed=0, temperature=2.0, batch_size=2, place=_place, desc="net",
+        )  # fmt: skip
+        return out
+
+    counting = _CountingStep(step)
+    once = run(counting)
+    assert counting.network_rows == [2] * 4  # a pass per lockstep step: both drives' frame
+    windows = sum(counting.solved_rows) - 2 * 4  # beyond the prior tiles
+    assert windows > 2 * 4 and [len(t.filtered) for t in once] == [4, 4]
+    assert max(t.hypotheses.max() for t in once) > 1  # a bank: several tiles per frame
+    per_tile = run(_PerTileStep(step))
+    for a, b in zip(once, per_tile, strict=True):
+        for key in ("filtered", "single", "mean", "cov_xy", "above", "log_p_gt", "scale"):
+            np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+        for key in ("lost", "narrowed", "hypotheses"):
+            np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+
+
+def test_nm_matches_the_frames_bev_features_against_each_tiles_neural_map():
+    """SegLocNet-NM through the split step: the BEV matching features of a frame (network once)
+    against the neural map of other tiles (the map side per tile) give the volumes of the whole
+    network run on the frame's row with each tile."""
+    split, drives, example, api, preset = _network_drives(frames=1)
+    model_cfg = dataclasses.replace(preset("tiny"), variant="nm")
+    params = api.init(jax.random.key(0), example, model_cfg)
+    # the initial projections are zero (all-zero features): bend every parameter
+    params = jax.tree.map(
+        lambda x: x + 0.05 * jnp.sin(1.7 * jnp.arange(x.size)).reshape(x.shape), params
+    )
+    step = evaluation.make_localize_step(model_cfg, solver.SolverConfig(num_rotations=K))
+    frame = _place(_stack_rows(split.rows([0, 1])))  # drive 0's and drive 1's first frames
+    tiles = {"tile": frame["tile"][::-1]}  # each frame against the other's tile
+    rows = np.array([1, 0])
+    got = step.solve(params, step.network(params, frame), tiles, rows, volume=True)
+    want = step(params, {**{k: v[rows] for k, v in frame.items()}, **tiles}, volume=True)
+    np.testing.assert_array_equal(got["volume"], want["volume"])
+    np.testing.assert_array_equal(got["pose_tile"], want["pose_tile"])
+    assert not np.array_equal(got["volume"][0], got["volume"][1])
+
+
+def _stack_rows(rows):
+    return {k: np.stack([np.asarray(r[k]) for r in rows]) for k in rows[0]}
+
+
 # --------------------------------------------------------------------------- read-outs
 
 
@@ -639,7 +802,7 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
     cfg = build_experiment(_tree(data_root, bev_source="gt", tracker=tracker))
     assert cfg.eval.tracker.hypotheses == 1 and cfg.eval.tracker.track_size == 65
     assert cfg.eval.tracker.off_road == 5.0
-    key = (cfg.model, cfg.solver, "gt", "volume")
+    key = (cfg.model, cfg.solver, "gt", "volume", "rows")  # the solver of the windows' tiles
     before = evaluation.TRACE_COUNTS.get(key, 0)
     workdir = str(tmp_path / "gt")
     assert eval_run.run_evaluation(cfg, None, workdir) == {}  # no single-frame splits
@@ -676,8 +839,8 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
     assert s["filter_ms_per_frame"] > 0 and sum(d["frames"] for d in s["per_drive"]) == s["frames"]
     assert s["score_ms_per_frame"] > 0  # the GT's read-out, timed apart from the filter's
     assert s["compile_ms_per_frame"] >= 0  # later compilations, timed apart
-    # One program for every frame: the batch of 129-cell windows (the tracking window's frames
-    # too: the centre of their volume).
+    # One solver program for every frame's windows: the batch of 129-cell tiles (the tracking
+    # window's frames too: the centre of their volume).
     assert evaluation.TRACE_COUNTS[key] - before == 1
     assert all(d["frames_narrowed"] >= 1 for d in s["per_drive"]) and s["narrowed_pct"] > 0
     assert "in tracking window (%)" in out and "acquisition" not in out

@@ -1,9 +1,13 @@
 """Evaluation, in one home: the jitted localize step and the split evaluation built on it.
 
-:func:`make_localize_step` builds, once per ``(model config, solver config, BEV source)``, one
-jitted program ``network (or GT labels) -> solver -> decoded pose``. Every evaluation goes through
-it: periodic validation, best-checkpoint selection, the final tables, the figures, the
-``evaluate`` app and the benchmarks. What it matches depends on the variant:
+:func:`make_localize_step` builds, once per ``(model config, solver config, BEV source)``, the
+localize step ``network (or GT labels) -> solver -> decoded pose``: two jitted programs, the
+network's side (:meth:`LocalizeStep.network`: the BEV, which no tile changes) and the tile's
+(:meth:`LocalizeStep.solve`: the map side and the solver), so that a frame matched against
+several tiles (the sequential filter's windows and the single-frame prior tile) runs the
+network once. Every evaluation goes through it: periodic validation, best-checkpoint
+selection, the final tables, the figures, the ``evaluate`` app, the sequential filter and the
+benchmarks. What it matches depends on the variant:
 
 - ``seg`` models: the BEV logits ``(B, C, 128, 128)`` against the ``{0, 1}`` map tile.
 - ``nm`` models (SegLocNet-NM): the BEV matching features against the neural map the network
@@ -38,41 +42,101 @@ from seglocnet_jax.model.config import ModelConfig
 BEV_SOURCES = ("model", "gt")
 
 # How many times each localize program was traced, keyed by the builder's arguments and the
-# program: ``figures`` False (poses), True (figure maps) or "volume" (the score volume). Pinned
-# by a test so that validation rounds never recompile.
+# program: "network", or the solver's ``figures`` False (poses), True (figure maps) or "volume"
+# (the score volume), followed by "rows" for the solver of gathered BEV rows (several tiles per
+# frame). Pinned by tests so that validation rounds never recompile.
 TRACE_COUNTS: dict[tuple, int] = {}
 
 
-def _match_inputs(params, batch, model_cfg: ModelConfig, bev_source: str):
-    """``(template (B, C', 128, 128), tile (B, C', 256, 256), bev logits or None)``."""
-    tile = batch["tile"].astype(jnp.float32)
-    if bev_source == "gt":
-        return solver.labels_to_logits(batch["bev_gt"].astype(jnp.float32)), tile, None
-    logits, aux = model_api.forward(params, batch, model_cfg)
-    if model_cfg.variant == "nm":
-        return aux["bev_match"], aux["map_match"], logits
-    return logits, tile, logits
-
-
-def _localize(params, batch, *, model_cfg, solver_cfg, bev_source, figures, key):
+def _network(params, batch, *, model_cfg: ModelConfig, bev_source: str, key) -> dict:
+    """The network's side of a batch, which no tile changes: ``template (B, C', 128, 128)``
+    (the BEV logits; NM: the BEV matching features; GT: the labels as +-1 logits) and, for a
+    network, its ``logits (B, C, 128, 128)``."""
     TRACE_COUNTS[key] = TRACE_COUNTS.get(key, 0) + 1  # runs only while tracing
-    template, tile, logits = _match_inputs(params, batch, model_cfg, bev_source)
+    if bev_source == "gt":
+        return {"template": solver.labels_to_logits(batch["bev_gt"].astype(jnp.float32))}
+    logits, aux = model_api.forward(params, batch, model_cfg, map_side=False)
+    template = aux["bev_match"] if model_cfg.variant == "nm" else logits
+    return {"template": template, "logits": logits}
+
+
+def _solve(params, bev, batch, rows, *, model_cfg, solver_cfg, bev_source, figures, key):
+    """The tile's side: ``bev`` (:func:`_network`, rows ``rows`` of it when given: a tile per
+    row of ``batch``) against ``batch["tile"]`` (NM: the neural map of the tile) -> decoded
+    pose; without ``rows`` also the IoU counts of the BEV (and the figure maps)."""
+    TRACE_COUNTS[key] = TRACE_COUNTS.get(key, 0) + 1  # runs only while tracing
+    template = bev["template"] if rows is None else bev["template"][rows]  # (B, C', 128, 128)
+    tile = batch["tile"].astype(jnp.float32)  # (B, C, 256, 256)
+    if model_cfg.variant == "nm" and bev_source == "model":
+        tile = model_api.encode_map(params, tile, model_cfg)  # (B, D', 256, 256)
     out = solver.localize(template, tile, solver_cfg, return_volume=bool(figures))
     result = {"pose_tile": out["pose_tile"], "score": out["score"]}  # (B, 3), (B,)
-    labels = batch["bev_gt"].astype(jnp.float32)  # (B, C, 128, 128)
-    if logits is not None:
-        pred = (logits > 0).astype(jnp.float32)
-        result["inter"] = jnp.sum(pred * labels, axis=(2, 3))  # (B, C)
-        result["union"] = jnp.sum(jnp.maximum(pred, labels), axis=(2, 3))  # (B, C)
+    logits = bev.get("logits")
+    if rows is None:
+        labels = batch["bev_gt"].astype(jnp.float32)  # (B, C, 128, 128)
+        if logits is not None:
+            pred = (logits > 0).astype(jnp.float32)
+            result["inter"] = jnp.sum(pred * labels, axis=(2, 3))  # (B, C)
+            result["union"] = jnp.sum(jnp.maximum(pred, labels), axis=(2, 3))  # (B, C)
+        if figures is True:
+            result["probs"] = labels if logits is None else jax.nn.sigmoid(logits)
     if figures == "volume":
         result["volume"] = out["volume"]  # (B, K, 129, 129)
     elif figures:
         result["likelihood"] = out["volume"].max(axis=1)  # (B, 129, 129)
-        result["probs"] = labels if logits is None else jax.nn.sigmoid(logits)
     return result
 
 
-LocalizeStep = Callable[..., dict]
+class LocalizeStep:
+    """The one localize step: ``step(params, batch, figures=False, volume=False)`` is
+    :meth:`network` then :meth:`solve` of the same batch; a caller with several tiles per
+    frame (the sequential filter) runs :meth:`network` once per frame and :meth:`solve` per
+    tile. See :func:`make_localize_step`."""
+
+    def __init__(self, model_cfg: ModelConfig, solver_cfg: solver.SolverConfig, bev_source: str):
+        base = (model_cfg, solver_cfg, bev_source)
+        self._network = jax.jit(
+            functools.partial(
+                _network, model_cfg=model_cfg, bev_source=bev_source, key=base + ("network",)
+            )
+        )
+        self._solve = {}
+        for figures in (False, True, "volume"):
+            for gathered in (False, True):
+                key = base + ((figures, "rows") if gathered else (figures,))
+                self._solve[figures, gathered] = jax.jit(
+                    functools.partial(
+                        _solve,
+                        model_cfg=model_cfg,
+                        solver_cfg=solver_cfg,
+                        bev_source=bev_source,
+                        figures=figures,
+                        key=key,
+                    )
+                )
+
+    def network(self, params, batch) -> dict:
+        """The network's side of a device batch (device arrays, :func:`_network`); ``params``
+        is ignored (pass None) for ``bev_source="gt"``."""
+        return self._network(params, batch)
+
+    def solve(self, params, bev, batch, rows=None, *, figures=False, volume=False) -> dict:
+        """The tiles of ``batch`` against ``bev`` (:meth:`network`'s output): the outputs of
+        :func:`make_localize_step`. ``rows``: ``(B,)`` int, the row of ``bev`` each tile is
+        matched with (None: row i with tile i; then also the IoU counts and figure maps)."""
+        if volume and figures:
+            raise ValueError("a localize step returns either the figure maps or the volume")
+        if rows is not None and figures:
+            raise ValueError("figure maps come with the batch's own rows (rows=None)")
+        program = self._solve["volume" if volume else bool(figures), rows is not None]
+        if rows is None:
+            return program(params, bev, batch, None)
+        return program(params, bev, batch, jnp.asarray(rows, jnp.int32))
+
+    def __call__(self, params, batch, figures: bool = False, volume: bool = False) -> dict:
+        return self.solve(
+            params, self.network(params, batch), batch, figures=figures, volume=volume
+        )
 
 
 @functools.lru_cache(maxsize=16)
@@ -85,30 +149,13 @@ def make_localize_step(
     ``figures=True`` also ``likelihood (B, 129, 129)`` and ``probs (B, C, 128, 128)``; with
     ``volume=True`` (not with figures) also the raw score volume ``volume (B, K, 129, 129)``.
 
-    Built once per argument triple (cached); each of the three programs compiles once.
-    ``params`` is ignored (pass None) for ``bev_source="gt"``."""
+    Two jitted programs per call: the network (:meth:`LocalizeStep.network`, no tile but the
+    NM map side) and the solver (:meth:`LocalizeStep.solve`), each compiled once per variant.
+    Built once per argument triple (cached). ``params`` is ignored (pass None) for
+    ``bev_source="gt"``."""
     if bev_source not in BEV_SOURCES:
         raise ValueError(f"bev_source must be one of {BEV_SOURCES}, got {bev_source!r}")
-    compiled = {}
-    for figures in (False, True, "volume"):
-        key = (model_cfg, solver_cfg, bev_source, figures)
-        compiled[figures] = jax.jit(
-            functools.partial(
-                _localize,
-                model_cfg=model_cfg,
-                solver_cfg=solver_cfg,
-                bev_source=bev_source,
-                figures=figures,
-                key=key,
-            )
-        )
-
-    def step(params, batch, figures: bool = False, volume: bool = False):
-        if volume and figures:
-            raise ValueError("a localize step returns either the figure maps or the volume")
-        return compiled["volume" if volume else bool(figures)](params, batch)
-
-    return step
+    return LocalizeStep(model_cfg, solver_cfg, bev_source)
 
 
 def evaluate_split(

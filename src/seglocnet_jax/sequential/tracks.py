@@ -1,7 +1,10 @@
 """Tracking the drives of a split (:mod:`.drives`) in lockstep: each drive a
 :class:`~.drive_filter.DriveFilter`, frame ``t`` of every drive in flight in one batch of the
-localize step (see the package docstring). The loop only feeds frames, batches the
-localizations and collects the tracks; the timing lives in :class:`_StepTimer`."""
+localize step (see the package docstring). The network runs once per frame
+(:meth:`~seglocnet_jax.evaluation.LocalizeStep.network`); the solver matches that BEV against
+the tile of every window of the drive and against the frame's stored prior tile (the
+single-frame pose). The loop only feeds frames, batches the localizations and collects the
+tracks; the timing lives in :class:`_StepTimer`."""
 
 from __future__ import annotations
 
@@ -96,25 +99,33 @@ def _stack(rows: list[dict]) -> dict:
 
 
 def _window_row(row: dict, tile, centre) -> dict:
-    """The drive row with the window's tile (``pose_tile`` in that tile's frame)."""
+    """A window's tile row: its tile, centre and the GT in that tile's frame (``pose_tile``,
+    read by nothing the filter runs), with the frame's index and GT pose."""
     pose = np.asarray(row["pose"], np.float64)
     return {
-        **row,
         "tile": np.asarray(tile, np.float32),
         "tile_center": centre,
         "pose_tile": np.array([*(pose[:2] - centre), pose[2]], np.float32),
+        "pose": pose,
+        "frame_index": row["frame_index"],
     }
 
 
-def _volumes(step, params, place, rows, roads, *, temperature, off_road, batch_size) -> list:
-    """The log-likelihood ``(K, N, N)`` of each window row: the volume program in padded
-    batches of ``batch_size`` (static shapes: the first row repeated), over ``temperature``;
-    with ``roads`` (the rows' road channels, or None) plus the on-road prior."""
+def _volumes(
+    step, params, place, bev, rows, owners, roads, *, temperature, off_road, batch_size
+) -> list:
+    """The log-likelihood ``(K, N, N)`` of each window row: the solver's volume program on the
+    frame's BEV (``bev``, row ``owners[i]`` for window row ``i``: the network does not run
+    again) in padded batches of ``batch_size`` (static shapes: the first row repeated), over
+    ``temperature``; with ``roads`` (the rows' road channels, or None) plus the on-road
+    prior."""
     out = []
     for start in range(0, len(rows), batch_size):
         chunk = rows[start : start + batch_size]
         pad = batch_size - len(chunk)
-        vol = step(params, place(_stack(chunk + [chunk[0]] * pad)), volume=True)["volume"]
+        batch = place(_stack(chunk + [chunk[0]] * pad))
+        index = owners[start : start + batch_size] + [owners[start]] * pad
+        vol = step.solve(params, bev, batch, np.asarray(index), volume=True)["volume"]
         road = None
         if roads is not None:
             road = np.stack(roads[start : start + batch_size] + [roads[start]] * pad)
@@ -179,9 +190,10 @@ def track_split(
                 cities = [slots[active[j]].drive.city for j in owners]
                 roads = [r["tile"][road_of[c]] for r, c in zip(window_rows, cities, strict=True)]
             timer.lap("filter")
-            if single:
-                pad = [rows[0]] * (batch_size - len(active))  # static shapes
-                one = step(params, place(_stack(rows + pad)))
+            frame = place(_stack(rows + [rows[0]] * (batch_size - len(active))))  # static shapes
+            bev = step.network(params, frame)  # once per frame: every tile below reuses it
+            if single:  # the frame's stored prior tile
+                one = step.solve(params, bev, frame)
                 pose_tile = np.asarray(jax.device_get(one["pose_tile"]), np.float64)
             else:
                 pose_tile = np.full((batch_size, 3), np.nan)
@@ -189,7 +201,9 @@ def track_split(
                 step,
                 params,
                 place,
+                bev,
                 window_rows,
+                owners,
                 roads,
                 temperature=temperature,
                 off_road=cfg.off_road,
