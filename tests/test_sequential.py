@@ -264,6 +264,45 @@ def test_a_far_first_peak_loses_the_truth_with_one_window_only(hypotheses):
         assert (track.hypotheses == 1).all()
 
 
+def test_temperature_candidates_in_one_pass_are_the_separate_runs():
+    """The temperature choice tracks every candidate in one pass (a filter per candidate, one
+    network pass per frame, their tiles in the same solver batches): each candidate's tracks
+    are those of its own run, and the candidates differ."""
+    drive = _straight_drive(n=8)
+    ev = sequential.EvalConfig(
+        odometry=_EXACT_ODOMETRY, tracker=sequential.TrackerSettings(hypotheses=3, off_road=2.0)
+    )
+    cfg = sequential.tracker_config(ev, K, ("road", "building"))
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0.0, 3.0, (8, K, 129, 129)).astype(np.float32)
+
+    def peaks(params, batch, figures, volume):  # the truth's peak on a noise floor per frame
+        b = len(batch["pose"])
+        out = {"pose_tile": jnp.zeros((b, 3))}
+        if volume:
+            vol = noise[np.asarray(batch["frame_index"]) % 8].copy()
+            for i in range(b):
+                cell = np.round(geometry.pose_to_cell(batch["pose_tile"][i], K)).astype(int)
+                if (0 <= cell[1:]).all() and (cell[1:] < 129).all():
+                    vol[i, cell[0] % K, cell[1], cell[2]] += 12.0
+            out["volume"] = jnp.asarray(vol)
+        return out
+
+    split, temps = _FakeSplit(_raster(6), drive), (0.5, 2.0, 8.0)
+    common = dict(cfg=cfg, odometry_cfg=_EXACT_ODOMETRY, odometry_seed=0, batch_size=1,
+                  place=lambda b: b, desc="t", single=False)  # fmt: skip
+    together, _ = sequential.track_candidates(
+        _FakeStep(peaks), None, split, [drive], temperatures=temps, **common
+    )
+    for t, (got,) in zip(temps, together, strict=True):
+        (want,), _ = sequential.track_split(
+            _FakeStep(peaks), None, split, [drive], temperature=t, **common
+        )
+        for key in ("filtered", "mean", "cov_xy", "above", "log_p_gt", "hypotheses", "scale"):
+            np.testing.assert_array_equal(getattr(got, key), getattr(want, key), err_msg=key)
+    assert not np.array_equal(together[0][0].log_p_gt, together[2][0].log_p_gt)
+
+
 def test_each_window_of_the_bank_learns_the_odometry_scale_of_its_own_track():
     """Frames 0-9 peak at the truth (20) and, more strongly (25), at a look-alike 48 m away
     that moves at 0.9 of the car's speed; from frame 10 only the truth peaks. The look-alike's

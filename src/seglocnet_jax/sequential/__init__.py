@@ -30,7 +30,8 @@ validation split (:class:`TemperatureFit`: the mean GT-cell log-likelihood accum
 batch over a log grid of ``T``, then a parabola through the best three points; no volume is
 kept), then, with ``eval.temperature_drives``, on validation drives
 (:func:`choose_filter_temperature`: the drives tracked at that ``T`` times each of
-``eval.temperature_scales``, the best mean log posterior of the GT cell kept). The single-frame
+``eval.temperature_scales``, all candidates in one pass with one network pass per frame, the
+best mean log posterior of the GT cell kept). The single-frame
 fit treats every frame as independent evidence; along a drive the frames overlap, their errors
 are correlated, and the filter fed the single-frame ``T`` is overconfident.
 
@@ -101,7 +102,7 @@ from seglocnet_jax.sequential.temperature import (
     fit_temperature,
     gt_cells,
 )
-from seglocnet_jax.sequential.tracks import track_split
+from seglocnet_jax.sequential.tracks import track_candidates, track_split
 
 __all__ = [
     "TRACKED_M",
@@ -124,6 +125,7 @@ __all__ = [
     "filter_tile",
     "start_belief",
     "track_split",
+    "track_candidates",
     "drive_summary",
     "summarize",
     "scalars",
@@ -161,19 +163,18 @@ def evaluate_sequential(
         loader_cfg=loader_cfg,
         threads=max(1, loader_cfg.num_threads),
     )
-    run = functools.partial(
-        track_split,
-        step,
-        params,
-        cfg=cfg,
-        odometry_cfg=eval_cfg.odometry,
-        odometry_seed=eval_cfg.odometry_seed,
-        batch_size=eval_cfg.batch_size,
-        place=place,
-    )
+    common = {
+        "cfg": cfg,
+        "odometry_cfg": eval_cfg.odometry,
+        "odometry_seed": eval_cfg.odometry_seed,
+        "batch_size": eval_cfg.batch_size,
+        "place": place,
+    }
+    run = functools.partial(track_split, step, params, **common)
+    candidates = functools.partial(track_candidates, step, params, **common)
     t_fit = time.time()
     temperature, fit = _temperature(
-        step, params, eval_cfg, run, open_split, place, num_rotations, temperature_batches
+        step, params, eval_cfg, candidates, open_split, place, num_rotations, temperature_batches
     )
     t_fit = time.time() - t_fit
     results = {}
@@ -207,11 +208,11 @@ def evaluate_sequential(
     return results
 
 
-def _temperature(step, params, eval_cfg, run, open_split, place, num_rotations, batches_of):
+def _temperature(step, params, eval_cfg, candidates, open_split, place, num_rotations, batches_of):
     """The filter's temperature and the record of its fit (None when given): fitted on single
     frames of ``eval.temperature_split``, then chosen on the drives of
-    ``eval.temperature_drives`` (:func:`choose_filter_temperature`; ``run``: the tracking of a
-    split with the run's filter)."""
+    ``eval.temperature_drives`` (:func:`choose_filter_temperature`; ``candidates``: the
+    tracking of a split at several temperatures with the run's filter)."""
     if eval_cfg.temperature is not None:
         return float(eval_cfg.temperature), None
     batches, n = batches_of()
@@ -232,7 +233,7 @@ def _temperature(step, params, eval_cfg, run, open_split, place, num_rotations, 
     try:
         drives = split.drives[: eval_cfg.max_drives]
         temperature, table = choose_filter_temperature(
-            run, split, drives, base=temperature, scales=eval_cfg.temperature_scales
+            candidates, split, drives, base=temperature, scales=eval_cfg.temperature_scales
         )
     finally:
         split.close()

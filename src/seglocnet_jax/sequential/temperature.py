@@ -106,26 +106,22 @@ def choose_filter_temperature(
 ) -> tuple[float, list[dict]]:
     """The filter's temperature, chosen on validation drives: ``drives`` (of the
     :class:`~seglocnet_jax.sequential.drives.DriveSplit` ``split``) are tracked at
-    ``base * s`` for each scale ``s`` (``track(split, drives, temperature=, desc=, single=)``:
-    :func:`~seglocnet_jax.sequential.tracks.track_split` with the run's filter; the volume
-    step only, no single-frame pass) and the ``T`` with the best mean log posterior of the GT
-    cell (the filter's log score, clamped at ``drive_filter.LOG_P_FLOOR``: a proper score, so
-    it rewards a posterior that is both sharp and calibrated) is returned, with one row per
-    candidate (``scale``, ``temperature``, ``mean_log_p_gt``, ``tracked_pct``, ``R@1m``,
-    ``coverage_90``)."""
+    ``base * s`` for each scale ``s``, all candidates in one pass over the drives
+    (``track(split, drives, temperatures=, desc=, single=)``:
+    :func:`~seglocnet_jax.sequential.tracks.track_candidates` with the run's filter: one
+    network pass per frame for every candidate; no single-frame pass) and the ``T`` with the
+    best mean log posterior of the GT cell (the filter's log score, clamped at
+    ``drive_filter.LOG_P_FLOOR``: a proper score, so it rewards a posterior that is both sharp
+    and calibrated) is returned, with one row per candidate (``scale``, ``temperature``,
+    ``mean_log_p_gt``, ``tracked_pct``, ``R@1m``, ``coverage_90``)."""
     from seglocnet_jax.sequential import report  # the numbers of the tracks
 
+    temps = [float(base) * float(scale) for scale in scales]
+    desc = f"filter temperatures {', '.join(f'{t:.3g}' for t in temps)} ({split.name})"
+    out, _ = track(split, drives, temperatures=temps, desc=desc, single=False)
     table = []
-    for scale in scales:
-        t = float(base) * float(scale)
-        out, _ = track(
-            split,
-            drives,
-            temperature=t,
-            desc=f"filter temperature {t:.3g} ({split.name})",
-            single=False,
-        )
-        s = report.summarize(out)
+    for scale, t, tracks in zip(scales, temps, out, strict=True):
+        s = report.summarize(tracks)
         table.append(
             {
                 "scale": float(scale),

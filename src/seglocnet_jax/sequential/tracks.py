@@ -85,13 +85,14 @@ class _StepTimer:
 
 @jax.jit
 def _log_likelihood(volume, temperature, road=None, off_road=0.0):
-    """``volume / T``: ``log_softmax(volume / T)`` up to a constant per frame, which the
-    update drops anyway (it subtracts the maximum); with ``road`` (``(..., T, T)``, the tiles'
-    road channels) plus the on-road prior (:func:`tracking.road_log_prior`, ``-off_road``
-    nats off the road)."""
+    """``volume / T`` (``temperature (B,)``: a ``T`` per row of ``volume (B, K, N, N)``):
+    ``log_softmax(volume / T)`` up to a constant per frame, which the update drops anyway (it
+    subtracts the maximum); with ``road`` (``(B, T, T)``, the tiles' road channels) plus the
+    on-road prior (:func:`tracking.road_log_prior`, ``-off_road`` nats off the road)."""
+    scaled = volume / temperature[:, None, None, None]
     if road is None:
-        return volume / temperature
-    return volume / temperature + tracking.road_log_prior(road, off_road)[..., None, :, :]
+        return scaled
+    return scaled + tracking.road_log_prior(road, off_road)[..., None, :, :]
 
 
 def _stack(rows: list[dict]) -> dict:
@@ -111,14 +112,12 @@ def _window_row(row: dict, tile, centre) -> dict:
     }
 
 
-def _volumes(
-    step, params, place, bev, rows, owners, roads, *, temperature, off_road, batch_size
-) -> list:
+def _volumes(step, params, place, bev, rows, owners, roads, temps, *, off_road, batch_size) -> list:
     """The log-likelihood ``(K, N, N)`` of each window row: the solver's volume program on the
     frame's BEV (``bev``, row ``owners[i]`` for window row ``i``: the network does not run
     again) in padded batches of ``batch_size`` (static shapes: the first row repeated), over
-    ``temperature``; with ``roads`` (the rows' road channels, or None) plus the on-road
-    prior."""
+    the row's temperature ``temps[i]``; with ``roads`` (the rows' road channels, or None) plus
+    the on-road prior."""
     out = []
     for start in range(0, len(rows), batch_size):
         chunk = rows[start : start + batch_size]
@@ -129,7 +128,8 @@ def _volumes(
         road = None
         if roads is not None:
             road = np.stack(roads[start : start + batch_size] + [roads[start]] * pad)
-        lik = _log_likelihood(vol, temperature, road, off_road)
+        temp = np.asarray(temps[start : start + batch_size] + [temps[start]] * pad, np.float32)
+        lik = _log_likelihood(vol, temp, road, off_road)
         out.extend(lik[i] for i in range(len(chunk)))
     return jax.block_until_ready(out)  # dispatch is asynchronous: time the steps, not the filter
 
@@ -140,19 +140,37 @@ def track_split(
     split: DriveSplit,
     drives: list[Drive],
     *,
+    temperature: float,
+    **kwargs,
+) -> tuple[list[Track], dict]:
+    """:func:`track_candidates` at one temperature: the tracks of ``drives`` and the timings."""
+    tracks, timing = track_candidates(
+        step, params, split, drives, temperatures=(temperature,), **kwargs
+    )
+    return tracks[0], timing
+
+
+def track_candidates(
+    step: LocalizeStep,
+    params,
+    split: DriveSplit,
+    drives: list[Drive],
+    *,
     cfg: tracking.TrackerConfig,
     odometry_cfg,
     odometry_seed: int,
-    temperature: float,
+    temperatures,
     batch_size: int,
     place,
     desc: str,
     single: bool = True,
-) -> tuple[list[Track], dict]:
+) -> tuple[list[list[Track]], dict]:
     """Tracks ``drives``, ``batch_size`` of them in lockstep (frame t of each in one batch of
-    the localize step; a finished drive's slot takes the next one), and localizes the same
+    the localize step; a finished drive's slot takes the next one), each with a filter per
+    likelihood temperature of ``temperatures`` (the candidates: one network pass per frame
+    for all of them, their windows' tiles in the same solver batches), and localizes the same
     frames single-frame (``single=False``: not; the tracks' ``single`` poses are then NaN).
-    Returns the tracks and timings (seconds, and the frames they cover:
+    Returns the tracks per temperature and timings (seconds, and the drive frames they cover:
     all but the first ``WARMUP_STEPS`` lockstep steps, which compile): ``filter_s`` is what a
     vehicle would run (prediction, tile cut, update, windows, read-outs), ``score_s`` the
     GT's read-out the metrics need (its cell's posterior and the mass above it), and
@@ -160,10 +178,11 @@ def track_split(
     width, a window's first frame), each left out of the others. Fewer drives than
     ``batch_size``: the batch is that many (no padded rows computed for nothing)."""
     batch_size = max(1, min(batch_size, len(drives)))
+    temperatures = [float(t) for t in temperatures]
     road_of = road_channels(split.rasters, cfg)  # None: no on-road prior
     pending = collections.deque(drives)
-    slots: list[DriveFilter | None] = [None] * batch_size
-    done: dict[str, Track] = {}
+    slots: list[list[DriveFilter] | None] = [None] * batch_size  # a filter per temperature
+    done: list[dict[str, Track]] = [{} for _ in temperatures]
     bar = tqdm(total=sum(len(d) for d in drives), desc=desc, unit="frame")
 
     def fill():
@@ -172,7 +191,7 @@ def track_split(
                 d = pending.popleft()
                 seed = drive_seed(odometry_seed, d.sequence_id)
                 odo = odometry_lib.simulate(d.poses, d.timestamps, odometry_cfg, seed)
-                slots[s] = DriveFilter(d, split.rasters[d.city], odo, cfg)
+                slots[s] = [DriveFilter(d, split.rasters[d.city], odo, cfg) for _ in temperatures]
 
     with CompileClock() as clock:
         timer = _StepTimer(clock)
@@ -180,14 +199,17 @@ def track_split(
         while any(slots):
             active = [s for s in range(batch_size) if slots[s] is not None]
             timer.begin()
-            rows = split.rows([slots[s].drive.records[slots[s].t] for s in active])
+            rows = split.rows([slots[s][0].drive.records[slots[s][0].t] for s in active])
             timer.lap("data")
-            windows = [(j, slots[s].tiles()) for j, s in enumerate(active)]
-            owners = [j for j, tiles in windows for _ in tiles]  # a row per window
-            window_rows = [_window_row(rows[j], *tc) for j, tiles in windows for tc in tiles]
+            # a row per window of each drive's filter per temperature: (drive row, filter)
+            windows = [
+                ((j, c), f.tiles()) for j, s in enumerate(active) for c, f in enumerate(slots[s])
+            ]
+            owners = [key for key, tiles in windows for _ in tiles]
+            window_rows = [_window_row(rows[j], *tc) for (j, _), tiles in windows for tc in tiles]
             roads = None
             if road_of is not None:
-                cities = [slots[active[j]].drive.city for j in owners]
+                cities = [slots[active[j]][0].drive.city for j, _ in owners]
                 roads = [r["tile"][road_of[c]] for r, c in zip(window_rows, cities, strict=True)]
             timer.lap("filter")
             frame = place(_stack(rows + [rows[0]] * (batch_size - len(active))))  # static shapes
@@ -203,27 +225,29 @@ def track_split(
                 place,
                 bev,
                 window_rows,
-                owners,
+                [j for j, _ in owners],
                 roads,
-                temperature=temperature,
+                [temperatures[c] for _, c in owners],
                 off_road=cfg.off_road,
                 batch_size=batch_size,
             )
             timer.lap("localize")
             for j, s in enumerate(active):
-                f = slots[s]
-                f.update([lik for lik, o in zip(log_lik, owners, strict=True) if o == j])
-                readout = f.read_out()
-                timer.lap("filter")
-                above, log_p = f.score()
-                timer.lap("score")
                 one_pose = solver.tile_pose_to_world(pose_tile[j], rows[j]["tile_center"])
-                track = f.finish(readout, one_pose, above, log_p)
-                if track is not None:
-                    done[f.drive.sequence_id], slots[s] = track, None
+                for c, f in enumerate(slots[s]):
+                    f.update([lik for lik, o in zip(log_lik, owners, strict=True) if o == (j, c)])
+                    readout = f.read_out()
+                    timer.lap("filter")
+                    above, log_p = f.score()
+                    timer.lap("score")
+                    track = f.finish(readout, one_pose, above, log_p)
+                    if track is not None:
+                        done[c][f.drive.sequence_id] = track
+                if slots[s][0].t == len(slots[s][0].drive):
+                    slots[s] = None
             timer.lap("filter")
             timer.end(len(active))
             bar.update(len(active))
             fill()
     bar.close()
-    return [done[d.sequence_id] for d in drives], timer.totals
+    return [[out[d.sequence_id] for d in drives] for out in done], timer.totals
