@@ -1,23 +1,23 @@
 """Benchmarks the sequential filter (``seglocnet_jax.tracking``): one frame at paper sizes, and
 whole drives with the tiny network.
 
+The filter is the one the app runs: its config is built from ``conf/`` (the ``eval`` group's
+``tracker`` and ``odometry`` of the default config, the map's channels) by the app's own builder,
+:func:`sequential.tracker_config`; only K (``--num-rotations``) and, when given,
+``--track-size`` / ``--hypotheses`` replace what the config says.
+
 A frame is predict (motion, blur, window re-centring) + update (one score volume's
 log-likelihood over the window's cells; it returns the posterior's estimate too) on a
 ``(K, N, N)`` belief (K = 256 by default) tracking a synthetic drive (a peaked likelihood at
 the true cell plus distractors and noise; making it is not timed, and it is a buffer XLA
 wrote, as the app's volume over T is). ``--window tracking`` (the
-default): the tracking window a locked drive runs in (``TrackerConfig(track_size=N)
-.tracking_window()``, N = ``--track-size``, default the app's ``eval.tracker.track_size``,
-65; started on the truth: the app narrows a locked window; its update takes the centre of
-the full window's volume and the log mean over it: :func:`tracking.update_tracking_window`,
-the app's step); ``--window full``: the full 129 x 129 window (a drive's first frames, its bank
-of windows, the frames after a loss).
+default): the tracking window a locked drive runs in (``cfg.tracking_window()``, its size
+``eval.tracker.track_size``, 65; started on the truth: the app narrows a locked window; its
+update takes the centre of the full window's volume and the log mean over it:
+:func:`tracking.update_tracking_window`, the app's step); ``--window full``: the full
+129 x 129 window (a drive's first frames, its bank of windows, the frames after a loss).
 Predict gets the MAP cell of the estimate the previous update returned, as a filter loop
 has it (``--map-cell computed``: predict finds it itself, one more pass over the volume).
-``--window acquisition``: the same frame on the acquisition window
-(``TrackerConfig(acquire_size=257).acquisition()``, 257 x 257 cells: the first frames of a drive
-and those after a loss), plus the :func:`tracking.narrow` test every such frame runs
-(``narrow_ms``, not part of the frame).
 
 The whole-drive rate (``--drives N``, 0: skip): N synthetic drives of ``--drive-frames`` frames
 (5 m apart over a random 2-channel city raster) through :func:`sequential.track_split`, the
@@ -43,14 +43,13 @@ figure depends on what else runs on the CPU. Progress goes to stderr; the last s
 JSON.
 
     python experiments/bench_tracking.py [--num-rotations 256] [--frames 20] [--map-cell given]
-        [--window tracking|full|acquisition] [--track-size 65] [--drives 4] [--drive-frames 24]
+        [--window tracking|full] [--track-size 65] [--drives 4] [--drive-frames 24]
         [--batch 4] [--hypotheses H]
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import os
@@ -62,6 +61,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from seglocnet_jax import evaluation, geometry, maps, sequential, solver, tracking
+from seglocnet_jax.app import hydra_glue
+from seglocnet_jax.app.schema import ExperimentConfig, build_experiment
 from seglocnet_jax.data.schema import BATCH_METADATA_KEYS as HOST_ONLY_KEYS
 from seglocnet_jax.model import api, synthetic
 from seglocnet_jax.model.config import preset
@@ -94,27 +95,42 @@ def _block(tree):
     return jax.block_until_ready(tree)
 
 
-WINDOWS = ("tracking", "full", "acquisition")
+WINDOWS = ("tracking", "full")
+
+
+def app_config(overrides=()) -> ExperimentConfig:
+    """The experiment the app would run with ``overrides`` (Hydra syntax) on ``conf/``."""
+    from hydra import compose, initialize_config_dir
+
+    hydra_glue.register_resolvers()
+    with initialize_config_dir(config_dir=hydra_glue.conf_dir(), version_base="1.3"):
+        tree = hydra_glue.to_tree(compose("config", overrides=list(overrides)))
+    return build_experiment(tree)
+
+
+def app_tracker(num_rotations: int, track_size=None, hypotheses=None) -> tracking.TrackerConfig:
+    """The filter's config as the app builds it from ``conf/`` (:func:`app_config`), with K
+    ``num_rotations`` and, when given, the tracking window's size and the windows per drive."""
+    overrides = [f"solver.num_rotations={num_rotations}"]
+    if track_size is not None:
+        overrides.append(f"eval.tracker.track_size={track_size}")
+    if hypotheses is not None:
+        overrides.append(f"eval.tracker.hypotheses={hypotheses}")
+    exp = app_config(overrides)
+    return sequential.tracker_config(exp.eval, exp.solver.num_rotations, exp.map.channels)
 
 
 def bench(
-    num_rotations: int,
+    app: tracking.TrackerConfig,
     frames: int,
     seed: int = 0,
     map_cell: str = "given",
     window="tracking",
-    track_size: int = 65,
 ) -> dict:
-    wide = 2 * tracking.TrackerConfig().size - 1 if window == "acquisition" else 0  # 257
-    narrow = track_size if window == "tracking" else 0
-    base = tracking.TrackerConfig(num_rotations=num_rotations, acquire_size=wide)
-    full = base  # the window the likelihood volume covers
-    if window == "acquisition":
-        cfg = full = base.acquisition()
-    elif window == "tracking":
-        cfg = dataclasses.replace(base, track_size=narrow).tracking_window()
-    else:
-        cfg = base
+    """One frame of the filter ``app`` (the app's config) at a time (module docstring)."""
+    num_rotations = app.num_rotations
+    full = app  # the window the likelihood volume covers
+    cfg = app.tracking_window() if window == "tracking" else full
     rng = np.random.default_rng(seed)
     step = np.array([2.0, 0.1, 0.02])  # m forward, m left, rad per frame
     pose = np.array([500.0, 500.0, 0.3])
@@ -122,9 +138,7 @@ def bench(
         belief = tracking.init_belief(cfg, pose[:2] + 5.0)
     else:  # the app narrows a locked window: start on the truth, as one
         belief = tracking.init_belief(cfg, pose[:2], sigma=1.0, yaw=pose[2], yaw_sigma=0.05)
-    stages = ("predict", "update", "estimate", "frame") + (
-        ("narrow",) if window == "acquisition" else ()
-    )
+    stages = ("predict", "update", "estimate", "frame")
     wall = {key: [] for key in stages}
     cpu = {key: [] for key in stages}
     cell = None
@@ -147,9 +161,6 @@ def bench(
         t3 = clock()
         _block(tracking.estimate(belief, cfg))
         t4 = clock()
-        if window == "acquisition":  # as the tracker runs it: with the mode update returned
-            _block(tracking.narrow(belief, cfg, base, map_cell=info["estimate"]["map_cell"]))
-        t5 = clock()
         est = info["estimate"]
         cell = est["map_cell"] if map_cell == "given" else None
         if i >= 2:
@@ -157,7 +168,7 @@ def bench(
                 ("predict", (t0, t1)),
                 ("update", (t2, t3)),
                 ("estimate", (t3, t4)),
-            ) + ((("narrow", (t4, t5)),) if window == "acquisition" else ()):
+            ):
                 wall[key].append(1000 * (b[0] - a[0]))
                 cpu[key].append(1000 * (b[1] - a[1]))
             wall["frame"].append(wall["predict"][-1] + wall["update"][-1])
@@ -236,7 +247,8 @@ def bench_drives(
     num_drives: int, frames: int, batch_size: int, seed: int = 0, hypotheses: int | None = None
 ) -> dict:
     """Whole drives through the lockstep loop with the tiny network (see the module docstring);
-    ``hypotheses``: windows per drive (None: the app's default, ``eval.tracker.hypotheses``)."""
+    the filter the app's (``conf/``), ``hypotheses``: windows per drive (None: the app's,
+    ``eval.tracker.hypotheses``)."""
     rng = np.random.default_rng(seed)
     side = 1600  # pixels: an 800 m city
     mask = (rng.random((2, side // 8, side // 8)) > 0.6).repeat(8, 1).repeat(8, 2)
@@ -255,12 +267,11 @@ def bench_drives(
         return {k: jnp.asarray(v) for k, v in batch.items() if k not in HOST_ONLY_KEYS}
 
     drives = _synthetic_drives(num_drives, frames, raster, rng)
-    eval_cfg = evaluation.EvalConfig()
+    overrides = ["solver.num_rotations=" + str(geometry.NUM_ROTATIONS)]
     if hypotheses is not None:
-        eval_cfg = dataclasses.replace(
-            eval_cfg, tracker=dataclasses.replace(eval_cfg.tracker, hypotheses=hypotheses)
-        )
-    cfg = sequential.tracker_config(eval_cfg, geometry.NUM_ROTATIONS, raster.channels)
+        overrides.append(f"eval.tracker.hypotheses={hypotheses}")
+    exp = app_config(overrides)
+    cfg = sequential.tracker_config(exp.eval, exp.solver.num_rotations, raster.channels)
     t0 = time.perf_counter()
     tracks, timing = sequential.track_split(
         step,
@@ -268,7 +279,7 @@ def bench_drives(
         _SyntheticSplit(raster, drives, sensors),
         drives,
         cfg=cfg,
-        odometry_cfg=tracking.OdometryConfig(),
+        odometry_cfg=exp.eval.odometry,
         odometry_seed=seed,
         temperature=346.0,  # the main job's filter temperature (docs/sequential.md)
         batch_size=batch_size,
@@ -312,8 +323,8 @@ def main(argv=None) -> None:
         "--window",
         choices=WINDOWS,
         default="tracking",
-        help="the tracking window (--track-size cells: a locked drive's), the full 129-cell "
-        "window or the 257-cell acquisition window",
+        help="the tracking window (eval.tracker.track_size cells: a locked drive's) or the "
+        "full 129-cell window",
     )
     parser.add_argument(
         "--track-size",
@@ -334,16 +345,10 @@ def main(argv=None) -> None:
         parser.error("--drives x --drive-frames must exceed the 2 compiling steps' frames")
     print(f"devices: {jax.devices()}", file=sys.stderr)
     load_before = os.getloadavg()[0]
-    track_size = args.track_size or evaluation.EvalConfig().tracker.track_size
-    if args.window == "tracking" and not track_size:
+    app = app_tracker(args.num_rotations, track_size=args.track_size)
+    if args.window == "tracking" and not app.track_size:
         parser.error("--window tracking needs --track-size (the app has no tracking window)")
-    result = bench(
-        args.num_rotations,
-        args.frames,
-        map_cell=args.map_cell,
-        window=args.window,
-        track_size=track_size,
-    )
+    result = bench(app, args.frames, map_cell=args.map_cell, window=args.window)
     if args.drives:
         result.update(
             bench_drives(args.drives, args.drive_frames, args.batch, hypotheses=args.hypotheses)

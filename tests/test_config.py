@@ -10,13 +10,14 @@ import json
 import pytest
 from hydra import compose, initialize_config_dir
 
-from seglocnet_jax import evaluation, maps, sim, solver
+from seglocnet_jax import maps, sim, solver, tracking
 from seglocnet_jax.app import hydra_glue
 from seglocnet_jax.app.schema import TrainConfig, build_experiment
 from seglocnet_jax.config_util import ConfigError
 from seglocnet_jax.data import loader
 from seglocnet_jax.data.simulated.config import PrepareConfig
 from seglocnet_jax.model.config import ModelConfig
+from seglocnet_jax.sequential import config as seq_config
 
 
 def _compose(overrides=(), name="config"):
@@ -37,7 +38,7 @@ def _plain(obj):
         ("model", ModelConfig(), ("num_classes",)),  # null: follows map.channels
         ("solver", solver.SolverConfig(), ()),
         ("train", TrainConfig(), ()),
-        ("eval", evaluation.EvalConfig(), ()),
+        ("eval", seq_config.EvalConfig(), ()),
         ("data", PrepareConfig(), ("name", "sim")),  # name: per sim preset; sim: group
     ],
 )
@@ -51,6 +52,27 @@ def test_default_group_yaml_equals_dataclass(section, default, derived):
         yaml["map_variants"] = [_plain(maps.MapConfig(**v)) for v in yaml["map_variants"]]
         want["map_variants"] = [_plain(maps.MapConfig(**v)) for v in want["map_variants"]]
     assert yaml == want
+
+
+@pytest.mark.parametrize(
+    "section, default",
+    [
+        ("tracker", seq_config.TrackerSettings()),
+        ("odometry", tracking.OdometryConfig()),
+    ],
+)
+def test_sequential_sections_equal_their_one_dataclass(section, default):
+    # eval.tracker is the filter's settings with one set of defaults (sequential.config), not
+    # a schema generated from the filter's own config; eval.odometry is the odometry model's.
+    yaml = _compose()["eval"][section]
+    assert yaml == _plain(default)
+    if section == "tracker":
+        assert len(yaml) <= 14, sorted(yaml)
+        # every setting reaches the filter's config (K, window, noise: derived)
+        cfg = seq_config.tracker_config(seq_config.EvalConfig(), 64, ("road", "building"))
+        for key, value in yaml.items():
+            want = seq_config.OFF_ROAD_NATS if value is None else value
+            assert getattr(cfg, key) == want, key
 
 
 def test_sim_cpu_preset_equals_simulator_defaults():

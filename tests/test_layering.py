@@ -25,8 +25,8 @@ ALLOWED = {
     "metrics": {"geometry"},
     "data": {"geometry", "maps", "sim", "solver"} | UTIL,
     "model": {"geometry", "solver", "losses"} | UTIL,
-    "viz": {"geometry", "maps"},
-    "evaluation": {"geometry", "solver", "metrics", "model", "viz", "tracking"},
+    "viz": {"geometry", "maps"} | UTIL,
+    "evaluation": {"geometry", "solver", "metrics", "model", "viz"},
     "training": {"geometry", "model", "data"} | UTIL,  # data: the batch schema
     "tracking": {"geometry", "solver"},
     "sequential": {
@@ -38,7 +38,8 @@ ALLOWED = {
         "data",
         "evaluation",
         "tracking",
-    },
+    }
+    | UTIL,
     "app": {
         "geometry",
         "maps",

@@ -42,12 +42,13 @@ def test_network_and_solver_compile_once_and_are_deterministic(tiny_params):
     # The one localize step every evaluation uses (evaluation.make_localize_step).
     solver_cfg = solver.SolverConfig(num_rotations=64)
     step = evaluation.make_localize_step(TINY, solver_cfg, "model")
-    key = (TINY, solver_cfg, "model", True)
-    before = evaluation.TRACE_COUNTS.get(key, 0)
+    keys = [(TINY, solver_cfg, "model", p) for p in ("network", True)]  # its two programs
+    before = [evaluation.TRACE_COUNTS.get(key, 0) for key in keys]
     a = jax.device_get(step(tiny_params, _batch(1), figures=True))
     b = jax.device_get(step(tiny_params, _batch(1), figures=True))
     c = jax.device_get(step(tiny_params, _batch(2), figures=True))  # new contents, same shapes
-    assert evaluation.TRACE_COUNTS[key] - before == 1, "network + solver traced more than once"
+    for key, n in zip(keys, before, strict=True):
+        assert evaluation.TRACE_COUNTS[key] - n == 1, f"{key[-1]} traced more than once"
     assert evaluation.make_localize_step(TINY, solver_cfg, "model") is step  # cached
     for k in a:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)

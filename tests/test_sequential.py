@@ -4,6 +4,7 @@ the streamed temperature fit, the credible-region read-out, the metric definitio
 validation, and whole drives through the evaluate and train apps (GT BEV: near-perfect
 tracking; results.json, the tables, the figures) and on converted nuScenes / AV2 fixtures."""
 
+import dataclasses
 import json
 import math
 import os
@@ -25,8 +26,10 @@ from seglocnet_jax.data.real import alignment as ra
 from seglocnet_jax.data.real import argoverse as av
 from seglocnet_jax.data.real import convert as rconv
 from seglocnet_jax.data.real import nuscenes as nu
+from seglocnet_jax.data.schema import BATCH_METADATA_KEYS
 from seglocnet_jax.model.config import ModelConfig
-from seglocnet_jax.sequential import settings, tracks
+from seglocnet_jax.sequential import config as seq_config
+from seglocnet_jax.sequential import drive_filter, tracks
 from seglocnet_jax.training import step as step_lib
 
 K = 16
@@ -114,10 +117,27 @@ def _straight_drive(n=30, spacing=5.0):
     )
 
 
+class _FakeStep:
+    """A localize step whose outputs ``tiles(params, batch, figures, volume)`` makes from the
+    batch of tiles alone (the network's side is nothing here)."""
+
+    def __init__(self, tiles):
+        self.tiles = tiles
+
+    def network(self, params, batch):
+        return None
+
+    def solve(self, params, bev, batch, rows=None, *, figures=False, volume=False):
+        return self.tiles(params, batch, figures, volume)
+
+    def __call__(self, params, batch, figures=False, volume=False):
+        return self.tiles(params, batch, figures, volume)
+
+
 def _track_one(step, split, drive, cfg, odometry):
     """``drive`` through the lockstep loop the apps run (batch 1, T = 1, odometry seed 0)."""
     (track,), _ = sequential.track_split(
-        step,
+        _FakeStep(step),
         None,
         split,
         [drive],
@@ -141,9 +161,9 @@ def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
     odometry = tr.OdometryConfig(
         scale_sigma=0.1, yaw_bias_sigma=0.0, yaw_scale_sigma=0.0, yaw_sigma=0.0
     )
-    ev = evaluation.EvalConfig(
+    ev = sequential.EvalConfig(
         odometry=odometry,
-        tracker=evaluation.TrackerSection(lost_peak_mass=0.0, lost_entropy=1.0, off_road=0.0),
+        tracker=sequential.TrackerSettings(lost_peak_mass=0.0, lost_entropy=1.0, off_road=0.0),
     )
     cfg = sequential.tracker_config(ev, K)
     tile_centres = []
@@ -153,7 +173,7 @@ def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
         out = {"pose_tile": jnp.zeros((b, 3))}
         if volume:
             tile_centres.append(np.asarray(batch["tile_center"][0]))
-            n = batch["tile"].shape[-1] - geometry.BEV_SIZE + 1  # 257: the acquisition window
+            n = batch["tile"].shape[-1] - geometry.BEV_SIZE + 1  # 129
             vol = np.zeros((b, K, n, n), np.float32)
             if int(batch["frame_index"][0]) == 0:  # a perfect first frame
                 pose_tile = batch["pose_tile"][0]
@@ -175,7 +195,6 @@ def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
     assert np.hypot(*(centres[1:] - dead[1:, :2]).T).max() < 1.5
     assert np.hypot(*(centres[-1] - drive.poses[-1, :2])) > truth_gap - 1.5
     assert not track.lost.any()
-    assert not track.acquiring.any()  # no acquisition window by default
     assert tile_centres and len(tile_centres) == len(drive)
 
 
@@ -203,13 +222,12 @@ def _peaks_step(peaks_of, sizes=None):
     return step
 
 
-@pytest.mark.parametrize(("acquire_size", "hypotheses"), [(257, 1), (0, 1), (0, 3)])
-def test_a_far_first_peak_loses_the_truth_with_one_window_only(acquire_size, hypotheses):
+@pytest.mark.parametrize("hypotheses", [1, 3])
+def test_a_far_first_peak_loses_the_truth_with_one_window_only(hypotheses):
     """Frame 0's likelihood peaks 55 m from the truth, at the far side of the prior box, and
     (more weakly, 5 nats) at the truth; every later frame peaks at the truth alone. The window
     follows the mode: the 129-cell window drops the truth's cells at frame 0 and never finds it
-    again; the acquisition window keeps them, the truth wins from frame 2, and the filter
-    narrows; a bank of windows gives the truth's mode a window of its own, whose evidence wins
+    again; a bank of windows gives the truth's mode a window of its own, whose evidence wins
     from frame 1, and the far window is pruned."""
     drive = _straight_drive(n=12)
     wrong = drive.priors[0] + [28.0, -20.0]  # inside the +-32 m box around the prior
@@ -217,13 +235,12 @@ def test_a_far_first_peak_loses_the_truth_with_one_window_only(acquire_size, hyp
     odometry = tr.OdometryConfig(
         scale_sigma=0.0, yaw_bias_sigma=0.0, yaw_scale_sigma=0.0, yaw_sigma=0.0
     )
-    ev = evaluation.EvalConfig(
+    ev = sequential.EvalConfig(
         odometry=odometry,
-        tracker=evaluation.TrackerSection(
+        tracker=sequential.TrackerSettings(
             lost_log_odds=0.0,
             lost_peak_mass=0.0,
             lost_entropy=1.0,
-            acquire_size=acquire_size,
             hypotheses=hypotheses,
             off_road=0.0,
         ),
@@ -241,17 +258,51 @@ def test_a_far_first_peak_loses_the_truth_with_one_window_only(acquire_size, hyp
     track = _track_one(_peaks_step(peaks), _FakeSplit(_raster(2), drive), drive, cfg, odometry)
     err = np.hypot(*(track.filtered[:, :2] - drive.poses[:, :2]).T)
     assert err[0] > 50.0  # the first frame's mode is the far peak either way
-    if acquire_size:
-        assert err[2:].max() < 1.0, err
-        # narrowed once the box around the mode had held the mass for acquire_frames frames
-        assert track.acquiring[: cfg.acquire_frames].all() and not track.acquiring[-1]
-    elif hypotheses > 1:
+    if hypotheses > 1:
         assert err[1:].max() < 1.0, err
         assert track.hypotheses[0] >= 2 and track.hypotheses[-1] == 1  # the far one pruned
-        assert not track.acquiring.any()
     else:
         assert err[1:].min() > 20.0, err
-        assert not track.acquiring.any() and (track.hypotheses == 1).all()
+        assert (track.hypotheses == 1).all()
+
+
+def test_temperature_candidates_in_one_pass_are_the_separate_runs():
+    """The temperature choice tracks every candidate in one pass (a filter per candidate, one
+    network pass per frame, their tiles in the same solver batches): each candidate's tracks
+    are those of its own run, and the candidates differ."""
+    drive = _straight_drive(n=8)
+    ev = sequential.EvalConfig(
+        odometry=_EXACT_ODOMETRY, tracker=sequential.TrackerSettings(hypotheses=3, off_road=2.0)
+    )
+    cfg = sequential.tracker_config(ev, K, ("road", "building"))
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0.0, 3.0, (8, K, 129, 129)).astype(np.float32)
+
+    def peaks(params, batch, figures, volume):  # the truth's peak on a noise floor per frame
+        b = len(batch["pose"])
+        out = {"pose_tile": jnp.zeros((b, 3))}
+        if volume:
+            vol = noise[np.asarray(batch["frame_index"]) % 8].copy()
+            for i in range(b):
+                cell = np.round(geometry.pose_to_cell(batch["pose_tile"][i], K)).astype(int)
+                if (0 <= cell[1:]).all() and (cell[1:] < 129).all():
+                    vol[i, cell[0] % K, cell[1], cell[2]] += 12.0
+            out["volume"] = jnp.asarray(vol)
+        return out
+
+    split, temps = _FakeSplit(_raster(6), drive), (0.5, 2.0, 8.0)
+    common = dict(cfg=cfg, odometry_cfg=_EXACT_ODOMETRY, odometry_seed=0, batch_size=1,
+                  place=lambda b: b, desc="t", single=False)  # fmt: skip
+    together, _ = sequential.track_candidates(
+        _FakeStep(peaks), None, split, [drive], temperatures=temps, **common
+    )
+    for t, (got,) in zip(temps, together, strict=True):
+        (want,), _ = sequential.track_split(
+            _FakeStep(peaks), None, split, [drive], temperature=t, **common
+        )
+        for key in ("filtered", "mean", "cov_xy", "above", "log_p_gt", "hypotheses", "scale"):
+            np.testing.assert_array_equal(getattr(got, key), getattr(want, key), err_msg=key)
+    assert not np.array_equal(together[0][0].log_p_gt, together[2][0].log_p_gt)
 
 
 def test_each_window_of_the_bank_learns_the_odometry_scale_of_its_own_track():
@@ -274,10 +325,10 @@ def test_each_window_of_the_bank_learns_the_odometry_scale_of_its_own_track():
             out.append((np.array([*off, truth[2]]), 40.0))
         return out
 
-    section = evaluation.TrackerSection(
+    section = sequential.TrackerSettings(
         hypotheses=2, hypothesis_prune=1000.0, lost_log_odds=0.0, lost_peak_mass=0.0, off_road=0.0
     )
-    ev = evaluation.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
+    ev = sequential.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
     cfg = sequential.tracker_config(ev, K)
     split = _FakeSplit(_raster(5), drive)
     track = _track_one(_peaks_step(peaks), split, drive, cfg, _EXACT_ODOMETRY)
@@ -320,14 +371,14 @@ def test_the_on_road_prior_drops_a_look_alike_off_the_road(off_road):
         off = wrong - np.asarray(batch["tile_center"][i])
         return [(truth, 20.0), (np.array([*off, truth[2]]), 25.0)]
 
-    section = evaluation.TrackerSection(
+    section = sequential.TrackerSettings(
         hypotheses=2,
         hypothesis_prune=1000.0,
         lost_log_odds=0.0,
         lost_peak_mass=0.0,
         off_road=off_road,
     )
-    ev = evaluation.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
+    ev = sequential.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
     cfg = sequential.tracker_config(ev, K)
     assert cfg.off_road == off_road
     split = _FakeSplit(raster, drive)
@@ -341,13 +392,15 @@ def test_the_on_road_prior_drops_a_look_alike_off_the_road(off_road):
 
 
 def test_a_null_on_road_prior_is_derived_from_the_maps_channels():
-    ev = evaluation.EvalConfig()  # the app's default: null
+    ev = sequential.EvalConfig()  # the app's default: null
     assert ev.tracker.off_road is None
-    assert sequential.tracker_config(ev, K, ("road", "building")).off_road == settings.OFF_ROAD_NATS
+    assert (
+        sequential.tracker_config(ev, K, ("road", "building")).off_road == seq_config.OFF_ROAD_NATS
+    )
     assert sequential.tracker_config(ev, K, ("building",)).off_road == 0.0  # no road to keep to
     with pytest.raises(ValueError, match="eval.tracker.off_road is null"):
         sequential.tracker_config(ev, K)
-    given = evaluation.EvalConfig(tracker=evaluation.TrackerSection(off_road=2.5))
+    given = sequential.EvalConfig(tracker=sequential.TrackerSettings(off_road=2.5))
     assert sequential.tracker_config(given, K, ("building",)).off_road == 2.5  # checked later
 
 
@@ -356,36 +409,8 @@ def test_the_on_road_prior_needs_a_road_channel():
     raster = maps.CityRaster(raster.mask[1:], raster.grid, ("building",), "town")
     cfg = tr.TrackerConfig(num_rotations=K, off_road=3.0)
     with pytest.raises(ValueError, match="off_road = 3.0 needs a 'road' channel.*'town'"):
-        settings.road_channels({"town": raster}, cfg)
-    assert settings.road_channels({"town": raster}, tr.TrackerConfig(num_rotations=K)) is None
-
-
-def test_a_loss_in_either_window_restarts_the_acquisition_window_on_the_box():
-    raster = _raster()
-    cfg = tr.TrackerConfig(num_rotations=K, acquire_size=257)
-    wide = cfg.acquisition()
-    for start_wide in (True, False):
-        belief = sequential.start_belief(raster, (-20.3, 130.7), cfg)
-        if not start_wide:
-            belief, _ = tr.narrow(belief, wide, cfg)
-        slot = tracks._Slot(
-            _straight_drive(3),
-            belief._replace(losses=jnp.int32(2)),
-            None,
-            wide if start_wide else cfg,
-            start_wide,
-        )
-        slot.held = 2
-        centre = tr.window_centre(slot.belief, slot.cfg)
-        tracks._next_window(slot, True, cfg, wide, raster)
-        assert slot.wide and slot.cfg == wide and slot.held == 0 and int(slot.belief.losses) == 2
-        np.testing.assert_allclose(tr.window_centre(slot.belief, wide), centre)
-        # the next predict keeps the window on the last estimate (the first maximum of the
-        # uniform box would be its corner)
-        np.testing.assert_array_equal(slot.map_cells[0][1:], [wide.centre, wide.centre])
-        p_xy = np.asarray(slot.belief.prob).sum(0)
-        assert p_xy[64:193, 64:193].sum() == pytest.approx(1.0, abs=1e-5)  # the box only
-        assert p_xy[:64].sum() == 0 and p_xy[:, 193:].sum() == 0
+        seq_config.road_channels({"town": raster}, cfg)
+    assert seq_config.road_channels({"town": raster}, tr.TrackerConfig(num_rotations=K)) is None
 
 
 def _peak_step(peak_of, sizes=None):
@@ -401,13 +426,13 @@ _EXACT_ODOMETRY = tr.OdometryConfig(
 @pytest.mark.parametrize("hypotheses", [1, 3])
 def test_a_locked_drive_narrows_to_the_tracking_window(hypotheses):
     """Every frame peaks at the truth: the drive tracks it in the 129-cell window (the bank's
-    windows first), narrows to the 65-cell tracking window once its box has held
-    acquire_mass for acquire_frames frames with one window left, and tracks on in it (its
+    windows first), narrows to the 65-cell tracking window once its box has held NARROW_MASS
+    for NARROW_FRAMES frames with one window left (drive_filter), and tracks on in it (its
     tile 192 px)."""
     drive = _straight_drive(n=14)
-    ev = evaluation.EvalConfig(
+    ev = sequential.EvalConfig(
         odometry=_EXACT_ODOMETRY,
-        tracker=evaluation.TrackerSection(track_size=65, hypotheses=hypotheses, off_road=0.0),
+        tracker=sequential.TrackerSettings(track_size=65, hypotheses=hypotheses, off_road=0.0),
     )
     cfg = sequential.tracker_config(ev, K)
     sizes = []
@@ -415,10 +440,10 @@ def test_a_locked_drive_narrows_to_the_tracking_window(hypotheses):
     track = _track_one(step, _FakeSplit(_raster(3), drive), drive, cfg, _EXACT_ODOMETRY)
     err = np.hypot(*(track.filtered[:, :2] - drive.poses[:, :2]).T)
     assert err.max() < 1.0, err
-    assert not track.acquiring.any() and not track.lost[2:].any()
+    assert not track.lost[2:].any()
     first = int(np.argmax(track.narrowed))  # the first frame in the tracking window
-    assert track.narrowed[first:].all() and first >= cfg.acquire_frames
-    assert (track.hypotheses[first - cfg.acquire_frames : first] == 1).all()
+    assert track.narrowed[first:].all() and first >= drive_filter.NARROW_FRAMES
+    assert (track.hypotheses[first - drive_filter.NARROW_FRAMES : first] == 1).all()
     assert set(sizes) == {129}  # every frame localized on the full tile
 
 
@@ -437,8 +462,8 @@ def test_a_loss_in_the_tracking_window_widens_it_and_recovers():
         return p
 
     # floor 0: no prior mass where the peak jumps to, so the belief cannot simply follow it.
-    section = evaluation.TrackerSection(track_size=65, hypotheses=1, floor=0.0, off_road=0.0)
-    ev = evaluation.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
+    section = sequential.TrackerSettings(track_size=65, hypotheses=1, floor=0.0, off_road=0.0)
+    ev = sequential.EvalConfig(odometry=_EXACT_ODOMETRY, tracker=section)
     cfg = sequential.tracker_config(ev, K)
     track = _track_one(_peak_step(peak), _FakeSplit(_raster(4), drive), drive, cfg, _EXACT_ODOMETRY)
     assert track.narrowed[8:12].all()  # locked and narrow before the jump
@@ -471,10 +496,155 @@ def test_the_tracking_windows_likelihood_is_the_centre_of_its_tiles_volume():
         pose = np.array([*(centre + rng.uniform(-15.0, 15.0, 2)), rng.uniform(-np.pi, np.pi)])
         in_tile = np.array([*(pose[:2] - centre), pose[2]])
         full = np.round(geometry.pose_to_cell(in_tile, K, size=129)).astype(int)
-        cell = np.asarray(tracks._gt_cell(belief, pose, narrow_cfg))
+        cell = np.asarray(drive_filter._gt_cell(belief, pose, narrow_cfg))
         np.testing.assert_array_equal(cell[1:], full[1:] - 32)
         k = full[0] % K
         assert window[k, cell[1], cell[2]] == volume[k, full[1], full[2]]
+
+
+# --------------------------------------------------------------------------- the network, once
+
+
+class _SensorSplit:
+    """Drives over one raster whose rows carry a network's inputs (synthetic sensors, cycled)
+    and the stored prior's tile: what a DriveSplit gives the localize step."""
+
+    name = "sensors"
+
+    def __init__(self, raster, drives, sensors):
+        self.rasters = {raster.name: raster}
+        self.frames = {int(r): (d, t) for d in drives for t, r in enumerate(d.records)}
+        self.sensors = sensors
+
+    def rows(self, indices):
+        out = []
+        for i in indices:
+            drive, t = self.frames[int(i)]
+            tile, centre = self.rasters[drive.city].tile(*drive.priors[t])
+            pose = drive.poses[t]
+            row = {k: v[int(i) % len(v)] for k, v in self.sensors.items()}
+            row.update(
+                tile=tile.astype(np.float32),
+                tile_center=np.asarray(centre, np.float64),
+                pose_tile=np.array([*(pose[:2] - centre), pose[2]], np.float32),
+                pose=pose,
+                frame_index=np.int64(t),
+            )
+            out.append(row)
+        return out
+
+
+class _CountingStep:
+    """The localize step, counting the rows each network pass and each solve got."""
+
+    def __init__(self, step):
+        self.step, self.network_rows, self.solved_rows = step, [], []
+
+    def network(self, params, batch):
+        self.network_rows.append(len(batch["tile"]))
+        return self.step.network(params, batch)
+
+    def solve(self, params, bev, batch, rows=None, **kw):
+        self.solved_rows.append(len(batch["tile"]))
+        return self.step.solve(params, bev, batch, rows, **kw)
+
+
+class _PerTileStep:
+    """The path before the network ran once per frame: the whole step (network and solver) for
+    every tile, on the frame's row with that tile."""
+
+    def __init__(self, step):
+        self.step = step
+
+    def network(self, params, batch):
+        return batch  # nothing runs yet
+
+    def solve(self, params, bev, batch, rows=None, *, figures=False, volume=False):
+        frame = bev if rows is None else {k: v[np.asarray(rows)] for k, v in bev.items()}
+        return self.step(params, {**frame, "tile": batch["tile"]}, figures=figures, volume=volume)
+
+
+def _network_drives(frames=4):
+    """Two drives over one raster with a tiny network's inputs: the split, its drives, the
+    network's parameters and the preset."""
+    from seglocnet_jax.model import api, synthetic
+    from seglocnet_jax.model.config import preset
+
+    raster = _raster(5)
+    drives = []
+    for d in range(2):
+        drive = _straight_drive(n=frames)
+        drive.sequence_id, drive.records = f"drive-{d}", drive.records + frames * d
+        drive.poses[:, :2] += [10.0 * d, -8.0 * d]
+        drive.priors = drive.poses[:, :2] + [6.0, -4.0 + 3 * d]
+        drives.append(drive)
+    sensors = synthetic.make_batch(0, 4, num_cams=2, image_hw=(32, 64), num_points=2048)
+    keys = ("images", "intrinsics", "cam_to_ego", "points", "points_mask", "bev_gt")
+    split = _SensorSplit(raster, drives, {k: sensors[k] for k in keys})
+    example = {k: np.asarray(v)[:1] for k, v in _stack_rows(split.rows([0])).items()}
+    return split, drives, example, api, preset
+
+
+def _place(batch):
+    return {k: jnp.asarray(v) for k, v in batch.items() if k not in BATCH_METADATA_KEYS}
+
+
+def test_the_network_runs_once_per_frame_and_the_tracks_are_the_per_tile_ones():
+    """Two drives in lockstep through the default filter (a bank of windows, the tracking
+    window, the on-road prior) with a (random) tiny network: one network pass per lockstep
+    step covers every drive's frame, and the solver matches that BEV against every window's
+    tile and the prior tile; the tracks equal those of the network rerun for every tile."""
+    split, drives, example, api, preset = _network_drives()
+    params = api.init(jax.random.key(0), example, preset("tiny"))
+    step = evaluation.make_localize_step(preset("tiny"), solver.SolverConfig(num_rotations=K))
+    raster = split.rasters["town"]
+    cfg = sequential.tracker_config(sequential.EvalConfig(), K, raster.channels)
+
+    def run(s):
+        out, _ = sequential.track_split(
+            s, params, split, drives, cfg=cfg, odometry_cfg=tr.OdometryConfig(),
+            odometry_seed=0, temperature=2.0, batch_size=2, place=_place, desc="net",
+        )  # fmt: skip
+        return out
+
+    counting = _CountingStep(step)
+    once = run(counting)
+    assert counting.network_rows == [2] * 4  # a pass per lockstep step: both drives' frame
+    windows = sum(counting.solved_rows) - 2 * 4  # beyond the prior tiles
+    assert windows > 2 * 4 and [len(t.filtered) for t in once] == [4, 4]
+    assert max(t.hypotheses.max() for t in once) > 1  # a bank: several tiles per frame
+    per_tile = run(_PerTileStep(step))
+    for a, b in zip(once, per_tile, strict=True):
+        for key in ("filtered", "single", "mean", "cov_xy", "above", "log_p_gt", "scale"):
+            np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+        for key in ("lost", "narrowed", "hypotheses"):
+            np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+
+
+def test_nm_matches_the_frames_bev_features_against_each_tiles_neural_map():
+    """SegLocNet-NM through the split step: the BEV matching features of a frame (network once)
+    against the neural map of other tiles (the map side per tile) give the volumes of the whole
+    network run on the frame's row with each tile."""
+    split, drives, example, api, preset = _network_drives(frames=1)
+    model_cfg = dataclasses.replace(preset("tiny"), variant="nm")
+    params = api.init(jax.random.key(0), example, model_cfg)
+    # the initial projections are zero (all-zero features): bend every parameter
+    params = jax.tree.map(
+        lambda x: x + 0.05 * jnp.sin(1.7 * jnp.arange(x.size)).reshape(x.shape), params
+    )
+    step = evaluation.make_localize_step(model_cfg, solver.SolverConfig(num_rotations=K))
+    frame = _place(_stack_rows(split.rows([0, 1])))  # drive 0's and drive 1's first frames
+    tiles = {"tile": frame["tile"][::-1]}  # each frame against the other's tile
+    rows = np.array([1, 0])
+    got = step.solve(params, step.network(params, frame), tiles, rows, volume=True)
+    want = step(params, {**{k: v[rows] for k, v in frame.items()}, **tiles}, volume=True)
+    np.testing.assert_array_equal(got["volume"], want["volume"])
+    np.testing.assert_array_equal(got["pose_tile"], want["pose_tile"])
+    assert not np.array_equal(got["volume"][0], got["volume"][1])
+
+
+def _stack_rows(rows):
+    return {k: np.stack([np.asarray(r[k]) for r in rows]) for k in rows[0]}
 
 
 # --------------------------------------------------------------------------- read-outs
@@ -493,15 +663,27 @@ def test_streamed_temperature_fit_matches_the_in_memory_fit():
         v, c = volumes[i : i + 64], cells[i : i + 64]
         fit.add(np.concatenate([v, v[:3]]), np.concatenate([c, c[:3]]), [1] * len(c) + [0] * 3)
     assert fit.count == 400
-    in_memory = tr.fit_temperature(volumes, cells)
+    # the objective on a fine grid, all frames at once (float64)
+    grid = np.geomspace(1.0, 16.0, 400)
+    flat_v = volumes.reshape(400, -1).astype(np.float64)
+    gt = flat_v[np.arange(400), flat]
+    objective = [
+        np.mean(
+            gt / t
+            - np.log(np.exp(flat_v / t - (flat_v / t).max(1, keepdims=True)).sum(1))
+            - (flat_v / t).max(1)
+        )
+        for t in grid
+    ]
+    in_memory = grid[int(np.argmax(objective))]
     assert abs(fit.result() / in_memory - 1) < 0.03, (fit.result(), in_memory)
     assert abs(fit.result() / 4.0 - 1) < 0.15
 
 
 def _readout(beliefs, log_w, pose, cfg):
     """The credible mass and log p of the GT pose, as the lockstep loop reads them out."""
-    cells = [tracks._gt_cell(b, pose, cfg) for b in beliefs]
-    return tr.hypotheses.mixture_readout(beliefs, log_w, cells, cfg, tracks.LOG_P_FLOOR_P)
+    cells = [drive_filter._gt_cell(b, pose, cfg) for b in beliefs]
+    return tr.hypotheses.mixture_readout(beliefs, log_w, cells, cfg, drive_filter.LOG_P_FLOOR_P)
 
 
 def test_readout_credible_mass_is_the_credible_region_test():
@@ -514,11 +696,11 @@ def test_readout_credible_mass_is_the_credible_region_test():
         above, log_p = _readout([belief], [0.0], pose, cfg)
         for mass in (0.5, 0.9, 0.99):
             assert bool(above < mass) == bool(tr.in_credible_region(belief, np.array(cell), mass))
-        want = max(math.log(float(prob[cell])), tracks.LOG_P_FLOOR)
+        want = max(math.log(float(prob[cell])), drive_filter.LOG_P_FLOOR)
         assert float(log_p) == pytest.approx(want, abs=1e-5)
     outside = tr.cell_to_world(belief, np.array([0.0, 4.0, 20.0], np.float32), cfg)
     above, log_p = _readout([belief], [0.0], outside, cfg)
-    assert math.isinf(float(above)) and float(log_p) == pytest.approx(tracks.LOG_P_FLOOR)
+    assert math.isinf(float(above)) and float(log_p) == pytest.approx(drive_filter.LOG_P_FLOOR)
 
 
 def test_readout_of_a_bank_is_the_mixtures():
@@ -554,7 +736,7 @@ def test_readout_mode_is_the_solvers_refined_peak():
         belief = tr.init_belief(cfg, (10.0, 20.0))._replace(prob=jnp.asarray(prob, jnp.float32))
         mode = tr.estimate(belief, cfg)["map_cell"]
         np.testing.assert_array_equal(mode, peak)
-        pose = tracks._readout(belief, mode, cfg)
+        pose = drive_filter._readout(belief, mode, cfg)
         cell, _ = solver.decode_cell(jnp.log(jnp.asarray(prob, jnp.float32)))
         want = tr.cell_to_world(belief, cell, cfg)
         np.testing.assert_allclose(pose[:2], want[:2], atol=1e-4)
@@ -580,7 +762,6 @@ def test_summary_follows_the_documented_definitions():
         above=np.where(err < 1.0, 0.3, np.inf),
         log_p_gt=np.where(err < 1.0, -2.0, -5.0),
         lost=lost,
-        acquiring=np.arange(n) < 6,
         narrowed=np.arange(n) >= 21,
         hypotheses=np.where(np.arange(n) < 4, 3, 1),
         scale=np.full(n, 1.01),
@@ -596,7 +777,6 @@ def test_summary_follows_the_documented_definitions():
     assert s["mean_log_p_gt"] == pytest.approx((-2.0 * 15 - 5.0 * 15) / 30)
     assert s["coverage"]["0.5"] == s["coverage_90"] == pytest.approx(100 * 15 / 30)
     assert s["filtered"]["count"] == s["single"]["count"] == n
-    assert d["frames_acquiring"] == 6 and s["acquiring_pct"] == pytest.approx(20.0)
     assert d["frames_narrowed"] == 9 and s["narrowed_pct"] == pytest.approx(30.0)
     assert d["frames_multi_hypothesis"] == 4 and d["odometry_scale"] == 1.01
     assert s["hypotheses_mean"] == pytest.approx((4 * 3 + 26) / 30)
@@ -629,15 +809,14 @@ def _tree(data_root, **eval_):
 
 
 def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, capsys):
-    # With the acquisition window (off by default; one window, not the default bank) and the
-    # tracking window (on by default), each left after one frame: the app's path through all
-    # three windows (acquisition -> 129 cells -> 65 cells) within the short drives.
-    # With the on-road prior (off by default): the acquisition window's larger tile too.
-    tracker = {"acquire_size": 257, "hypotheses": 1, "acquire_frames": 1, "off_road": 5.0}
+    # With one window (not the default bank) and the tracking window (on by default): the
+    # app's path through both windows (129 cells -> 65 cells) within the short drives.
+    # With a given on-road prior (null by default: derived from the map).
+    tracker = {"hypotheses": 1, "off_road": 5.0}
     cfg = build_experiment(_tree(data_root, bev_source="gt", tracker=tracker))
-    assert cfg.eval.tracker.acquire_size == 257 and cfg.eval.tracker.track_size == 65
+    assert cfg.eval.tracker.hypotheses == 1 and cfg.eval.tracker.track_size == 65
     assert cfg.eval.tracker.off_road == 5.0
-    key = (cfg.model, cfg.solver, "gt", "volume")
+    key = (cfg.model, cfg.solver, "gt", "volume", "rows")  # the solver of the windows' tiles
     before = evaluation.TRACE_COUNTS.get(key, 0)
     workdir = str(tmp_path / "gt")
     assert eval_run.run_evaluation(cfg, None, workdir) == {}  # no single-frame splits
@@ -674,15 +853,11 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
     assert s["filter_ms_per_frame"] > 0 and sum(d["frames"] for d in s["per_drive"]) == s["frames"]
     assert s["score_ms_per_frame"] > 0  # the GT's read-out, timed apart from the filter's
     assert s["compile_ms_per_frame"] >= 0  # later compilations, timed apart
-    # Two programs for every frame: the batch of 129-cell windows (the tracking window's frames
-    # too: the centre of their volume) and one acquisition window (drive by drive), where each
-    # drive spends its first frame; then a frame in the 129-cell window, then the 65-cell one.
-    assert evaluation.TRACE_COUNTS[key] - before == 2
-    assert all(d["frames_acquiring"] >= 1 for d in s["per_drive"]) and s["acquiring_pct"] > 0
+    # One solver program for every frame's windows: the batch of 129-cell tiles (the tracking
+    # window's frames too: the centre of their volume).
+    assert evaluation.TRACE_COUNTS[key] - before == 1
     assert all(d["frames_narrowed"] >= 1 for d in s["per_drive"]) and s["narrowed_pct"] > 0
-    arrays = np.load(os.path.join(workdir, "sequential", "drives_val.npz"))
-    assert not (arrays["narrowed"] & arrays["acquiring"]).any()
-    assert "in tracking window (%)" in out
+    assert "in tracking window (%)" in out and "acquisition" not in out
     assert "seq_test [hd_road-building, gt] drives_val filtered" in out
     assert "GT in 90% region (%)" in out and "[seglocnet] sequential evaluation:" in out
     figures = sorted(os.listdir(os.path.join(workdir, "figures", "sequential")))
@@ -710,7 +885,7 @@ def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, cap
     s = saved["sequential"]["drives_val"]
     assert s["temperature"] == 200.0 and s["temperature_fit"] is None
     # The on-road prior, null by default: derived from the map's road channel.
-    assert cfg.eval.tracker.off_road is None and s["off_road"] == settings.OFF_ROAD_NATS
+    assert cfg.eval.tracker.off_road is None and s["off_road"] == seq_config.OFF_ROAD_NATS
     assert s["filtered"]["count"] == s["single"]["count"] == s["frames"] > 0
     assert "| seq_test [hd_road-building, tiny-seg] test |" in out
     assert "| seq_test [hd_road-building, tiny-seg] drives_val filtered |" in out
@@ -740,9 +915,9 @@ def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, cap
         ({"temperature_drives": "kouvola"}, "eval.temperature_drives: split 'kouvola'"),
         ({"temperature_scales": [4.0, 1.0]}, "eval.temperature_scales"),
         ({"temperature_scales": [0.0, 1.0]}, "eval.temperature_scales"),
-        ({"tracker": {"outlier": 1.0}}, "outlier"),
-        ({"tracker": {"acquire_size": 257}}, "hypotheses = 4 needs outlier = 0 and acquire_size"),
-        ({"tracker": {"outlier": 0.1, "hypotheses": 1}}, "track_size = 65 needs outlier = 0"),
+        ({"tracker": {"acquire_size": 257}}, "eval.tracker.acquire_size"),  # deleted: unknown
+        ({"tracker": {"sigma_xy": 0.1}}, "eval.tracker.sigma_xy"),  # from eval.odometry only
+        ({"tracker": {"track_size": 64}}, "track_size"),
         ({"mode": "video"}, "eval.mode"),
         ({"temperature": -1.0}, "eval.temperature"),
         ({"max_drives": 0}, "eval.max_drives"),
@@ -817,7 +992,7 @@ def _convert_argoverse(tmp_path):
 @pytest.mark.parametrize("convert", [_convert_nuscenes, _convert_argoverse], ids=["nus", "av2"])
 def test_scenes_and_logs_are_tracked_through_the_same_records(tmp_path, convert):
     ddir, variant, channels = convert(tmp_path)
-    ev = evaluation.EvalConfig(
+    ev = sequential.EvalConfig(
         bev_source="gt",
         mode="sequential",
         sequential_splits=("val",),

@@ -1,8 +1,8 @@
 """The sequential filter: exact tracking with perfect inputs, dead reckoning with a flat
 likelihood (also with the simulated odometry and the filter noise derived from it),
 prediction signs in all four heading quadrants, the narrowed kernels, convergence from a 30 m
-prior, a detected and recovered track loss, determinism, the credible-region test, the
-temperature fit, and the lattice convention shared with the solver's tiles. Small K keeps
+prior, a detected and recovered track loss, determinism, the credible-region test and the
+lattice convention shared with the solver's tiles. Small K keeps
 every test fast."""
 
 import math
@@ -135,24 +135,14 @@ def test_config_rejects_bad_values():
         tr.TrackerConfig(size=128)
     with pytest.raises(ValueError, match="floor"):
         tr.TrackerConfig(floor=1.0)
-    for bad in (129, 200, 101):  # not larger than size, even, smaller
-        with pytest.raises(ValueError, match="acquire_size"):
-            tr.TrackerConfig(acquire_size=bad)
-    with pytest.raises(ValueError, match="acquire_mass"):
-        tr.TrackerConfig(acquire_mass=0.0)
-    with pytest.raises(ValueError, match="acquire_frames"):
-        tr.TrackerConfig(acquire_frames=0)
-    assert tr.TrackerConfig().acquisition() is None  # off by default
     for bad in (129, 131, 64, 1):  # not smaller than size, even, too small
         with pytest.raises(ValueError, match="track_size"):
             tr.TrackerConfig(track_size=bad)
-    with pytest.raises(ValueError, match="track_size = 65 needs outlier = 0"):
-        tr.TrackerConfig(track_size=65, outlier=0.1)
     with pytest.raises(ValueError, match="reference_size"):
         tr.TrackerConfig(size=65, reference_size=33)
     assert tr.TrackerConfig().tracking_window() is None  # off in the filter's own default
-    wide = tr.TrackerConfig(acquire_size=257, track_size=65).acquisition()
-    assert (wide.size, wide.track_size, wide.reference_size) == (257, 0, 0)
+    small = tr.TrackerConfig(track_size=65).tracking_window()
+    assert (small.size, small.track_size, small.reference_size) == (65, 0, 129)
     for bad in (-1.0, math.inf):
         with pytest.raises(ValueError, match="off_road"):
             tr.TrackerConfig(off_road=bad)
@@ -275,38 +265,32 @@ def test_recentre_drops_and_reports_the_mass_that_leaves():
     assert (prob[:, -10:, :] == 0).all() and (prob[:, :, :3] == 0).all()  # cells that entered
 
 
-def test_acquisition_box_prior_and_narrowing_keep_the_world_poses():
-    acq = tr.TrackerConfig(num_rotations=K, acquire_size=257)
-    wide = acq.acquisition()
-    assert (wide.size, wide.tile_size, wide.acquire_size) == (257, 384, 0)
-    prior = (300.0, 200.0)
-    box = tr.init_belief(wide, prior, box=CFG.centre * CFG.resolution)  # the +-32 m prior box
-    p_xy = np.asarray(box.prob).sum(0)
-    inside = np.zeros_like(p_xy, bool)
-    inside[64:193, 64:193] = True  # the 129 central cells of the 257
-    assert (p_xy[~inside] == 0).all() and np.allclose(p_xy[inside], 1.0 / 129**2, rtol=1e-4)
-    # 0.9 at a peak, 0.1 at the wide window's corner (cut away); the peak 25 m south and 20 m
-    # east of the centre (the box centred on it), or near the wide window's edge (the box
+def test_narrowing_to_the_tracking_window_keeps_the_world_poses():
+    small = tr.TrackerConfig(num_rotations=K, track_size=65).tracking_window()
+    assert (small.size, small.tile_size, small.reference_size) == (65, 192, 129)
+    box = tr.init_belief(CFG, (300.0, 200.0))
+    # 0.9 at a peak, 0.1 at the full window's corner (cut away); the peak 15 m south and 10 m
+    # east of the centre (the box centred on it), or near the full window's edge (the box
     # clipped inside the window: the peak is then off the new window's centre).
-    for cell, at_centre in (((5, 128 + 50, 128 + 40), True), ((9, 3, 250), False)):
-        prob = np.zeros((K, 257, 257), np.float32)
+    for cell, at_centre in (((5, 64 + 30, 64 + 20), True), ((9, 3, 125), False)):
+        prob = np.zeros((K, 129, 129), np.float32)
         prob[cell] = 0.9
         prob[(cell[0], 0, 0)] = 0.1
         belief = box._replace(prob=np.asarray(prob))
-        before = np.asarray(tr.cell_to_world(belief, np.array(cell), wide))
-        narrowed, kept = tr.narrow(belief, wide, acq)
-        given, kept_given = tr.narrow(belief, wide, acq, map_cell=np.array(cell))  # the loop's
+        before = np.asarray(tr.cell_to_world(belief, np.array(cell), CFG))
+        narrowed, kept = tr.narrow(belief, CFG, small)
+        given, kept_given = tr.narrow(belief, CFG, small, map_cell=np.array(cell))  # the loop's
         np.testing.assert_array_equal(given.prob, narrowed.prob)
         np.testing.assert_array_equal(given.centre, narrowed.centre)
         assert float(kept_given) == float(kept)
         new = np.asarray(narrowed.prob)
-        assert new.shape == (K, 129, 129) and abs(new.sum() - 1.0) < 1e-5
+        assert new.shape == (K, 65, 65) and abs(new.sum() - 1.0) < 1e-5
         assert float(kept) == pytest.approx(0.9, abs=1e-6)
         at = np.unravel_index(np.argmax(new), new.shape)
-        assert (at[1:] == (64, 64)) == at_centre, at
-        np.testing.assert_allclose(tr.cell_to_world(narrowed, np.array(at), CFG), before)
+        assert (at[1:] == (32, 32)) == at_centre, at
+        np.testing.assert_allclose(tr.cell_to_world(narrowed, np.array(at), small), before)
     with pytest.raises(ValueError, match="narrow"):
-        tr.narrow(belief, CFG, wide)
+        tr.narrow(narrowed, small, CFG)
 
 
 def test_flat_likelihood_follows_the_odometry():
@@ -450,8 +434,6 @@ def test_update_evidence_on_request_is_the_log_sum_of_prior_times_likelihood():
     plain_post, plain = tr.update(belief, ll, CFG)
     assert "log_evidence" not in plain  # one pass less unless asked for
     np.testing.assert_array_equal(plain_post.prob, post.prob)
-    with pytest.raises(ValueError, match="outlier"):
-        tr.update(belief, ll, tr.TrackerConfig(num_rotations=K, outlier=0.1), evidence=True)
 
 
 def test_credible_region_matches_sorting():
@@ -468,42 +450,6 @@ def test_credible_region_matches_sorting():
             expected = prob[cell] >= threshold
             assert bool(tr.in_credible_region(belief, np.array(cell), mass)) == expected, cell
     assert not bool(tr.in_credible_region(belief, np.array([0, 9, 0]), 0.9))  # outside
-
-
-def test_fit_temperature_recovers_the_generating_temperature():
-    rng = np.random.default_rng(0)
-    volumes = rng.normal(0.0, 10.0, (400, 4, 9, 9)).astype(np.float32)
-    true_t = 4.0
-    logits = volumes.reshape(400, -1) / true_t
-    p = np.exp(logits - logits.max(1, keepdims=True))
-    p /= p.sum(1, keepdims=True)
-    flat = np.array([rng.choice(p.shape[1], p=row) for row in p])
-    cells = np.stack(np.unravel_index(flat, (4, 9, 9)), axis=1)
-    fitted = tr.fit_temperature(volumes, cells)
-    assert abs(fitted / true_t - 1) < 0.15, fitted
-    with pytest.raises(ValueError, match="inside"):
-        tr.fit_temperature(volumes[:1], np.array([[0, 9, 0]]))
-
-
-def test_outlier_term_bounds_what_one_wrong_frame_does_to_a_locked_belief():
-    # A belief locked on the truth, then one frame whose likelihood peaks sharply 20 cells
-    # away (a look-alike street): the raw likelihood hands the belief to the wrong place, the
-    # robust one (a flat outlier term of weight 0.1) keeps it on the truth; a frame that
-    # agrees with the belief moves it the same either way.
-    truth, wrong = (4, 64, 64), (4, 64, 84)
-    for outlier, expect in ((0.0, wrong), (0.1, truth)):
-        cfg = tr.TrackerConfig(
-            num_rotations=K, outlier=outlier, lost_log_odds=0.0, lost_peak_mass=0.0
-        )
-        prob = _blob(cfg, truth, 1.0)
-        belief = tr.init_belief(cfg, (0.0, 0.0))._replace(prob=prob / prob.sum())
-        after, info = tr.update(belief, _blob(cfg, wrong, 60.0), cfg)
-        assert not bool(info["lost"])
-        np.testing.assert_array_equal(info["estimate"]["map_cell"], expect)
-        agree, _ = tr.update(belief, _blob(cfg, truth, 60.0), cfg)
-        np.testing.assert_array_equal(tr.estimate(agree, cfg)["map_cell"], truth)
-    with pytest.raises(ValueError, match="outlier"):
-        tr.TrackerConfig(outlier=1.0)
 
 
 # --------------------------------------------------------------------------- a bank of windows

@@ -10,7 +10,6 @@ centre, the drive figures' in the world frame.
 from __future__ import annotations
 
 import math
-import os
 
 import matplotlib
 
@@ -18,7 +17,7 @@ matplotlib.use("Agg")  # files only; never opens a window
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from seglocnet_jax import geometry  # noqa: E402
+from seglocnet_jax import fileio, geometry  # noqa: E402
 from seglocnet_jax.maps.render import COLOURS  # noqa: E402
 
 
@@ -118,11 +117,11 @@ def sample_figure(
 
 
 def _save(fig, path: str) -> str:
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = path + ".tmp.png"
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        with fileio.atomic_path(path) as tmp:  # keeps the .png suffix: savefig's format
+            fig.savefig(tmp)
+    finally:
+        plt.close(fig)
     return path
 
 

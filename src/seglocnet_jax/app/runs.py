@@ -266,7 +266,6 @@ SEQUENTIAL_COLUMNS = (
     ("losses_detected", "losses detected", "{:d}"),
     ("losses_recovered", "recovered", "{:d}"),
     ("coverage_90", "GT in 90% region (%)", "{:.1f}"),
-    ("acquiring_pct", "in acquisition window (%)", "{:.1f}"),
     ("narrowed_pct", "in tracking window (%)", "{:.1f}"),
     ("hypotheses_mean", "windows per frame", "{:.2f}"),
     ("mean_log_p_gt", "log p(GT) (nats)", "{:.2f}"),

@@ -16,8 +16,8 @@ from seglocnet_jax import maps, metrics, solver
 from seglocnet_jax.config_util import ConfigError, from_dict
 from seglocnet_jax.data import loader as loader_lib
 from seglocnet_jax.data.simulated.config import PrepareConfig
-from seglocnet_jax.evaluation import EvalConfig
 from seglocnet_jax.model.config import ModelConfig
+from seglocnet_jax.sequential.config import EvalConfig
 from seglocnet_jax.training.checkpoint import CheckpointConfig
 from seglocnet_jax.training.state import OptimConfig
 

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 
 from seglocnet_jax import geometry, losses, solver
 from seglocnet_jax.model.config import ModelConfig
+from seglocnet_jax.model.neural_map import NeuralMapEncoder
 from seglocnet_jax.model.seglocnet import SegLocNet, check_batch, required_keys
 
 
@@ -24,9 +25,9 @@ def build(cfg: ModelConfig) -> SegLocNet:
     return SegLocNet(cfg)
 
 
-def _model_inputs(batch: dict, cfg: ModelConfig) -> dict:
-    check_batch(batch, cfg)
-    return {k: batch[k] for k in required_keys(cfg)}
+def _model_inputs(batch: dict, cfg: ModelConfig, map_side: bool = True) -> dict:
+    check_batch(batch, cfg, map_side)
+    return {k: batch[k] for k in required_keys(cfg, map_side)}
 
 
 def init(key: jax.Array, batch: dict, cfg: ModelConfig) -> dict:
@@ -44,18 +45,30 @@ def forward(
     *,
     train: bool = False,
     rng: jax.Array | None = None,
+    map_side: bool = True,
 ) -> tuple[jax.Array, dict]:
     """``(bev_logits (B, C, 128, 128), aux)``; see :class:`SegLocNet` for ``aux``.
 
-    ``train`` enables dropout (``rng`` required when ``cfg.dropout > 0``).
+    ``train`` enables dropout (``rng`` required when ``cfg.dropout > 0``). ``map_side=False``:
+    the NM map side (``aux["map_match"]``) left out, for :func:`encode_map` per tile.
     """
     deterministic = not train or cfg.dropout == 0.0
     if not deterministic and rng is None:
         raise ValueError("forward(train=True) with model.dropout > 0 needs an rng key")
     rngs = None if deterministic else {"dropout": rng}
+    inputs = _model_inputs(batch, cfg, map_side)
     return build(cfg).apply(
-        {"params": params}, _model_inputs(batch, cfg), deterministic=deterministic, rngs=rngs
+        {"params": params}, inputs, deterministic=deterministic, rngs=rngs, map_side=map_side
     )
+
+
+def encode_map(params: dict, tile: jax.Array, cfg: ModelConfig) -> jax.Array:
+    """The NM map side alone: tiles ``(B, C, 256, 256)`` -> ``map_match (B, D', 256, 256)``,
+    as :func:`forward` computes it (the same module and parameters)."""
+    if cfg.variant != "nm":
+        raise ValueError(f"encode_map needs model.variant=nm, got {cfg.variant!r}")
+    out = NeuralMapEncoder(cfg).apply({"params": params["neural_map"]}, tile)
+    return jnp.moveaxis(out, -1, 1)
 
 
 def nm_log_likelihood(aux: dict, num_rotations: int) -> jax.Array:

@@ -21,21 +21,22 @@ CAMERA_KEYS = ("images", "intrinsics", "cam_to_ego")
 LIDAR_KEYS = ("points", "points_mask")
 
 
-def required_keys(cfg: ModelConfig) -> tuple[str, ...]:
-    """Batch keys the network reads for this configuration."""
+def required_keys(cfg: ModelConfig, map_side: bool = True) -> tuple[str, ...]:
+    """Batch keys the network reads for this configuration (``map_side=False``: without the
+    NM map side, the tile)."""
     keys = ()
     if cfg.use_camera:
         keys += CAMERA_KEYS
     if cfg.use_lidar:
         keys += LIDAR_KEYS
-    if cfg.variant == "nm":
+    if cfg.variant == "nm" and map_side:
         keys += ("tile",)
     return keys
 
 
-def check_batch(batch: dict, cfg: ModelConfig):
+def check_batch(batch: dict, cfg: ModelConfig, map_side: bool = True):
     """Raises a ``KeyError`` naming the missing batch keys for ``model.modality`` / variant."""
-    missing = [k for k in required_keys(cfg) if k not in batch]
+    missing = [k for k in required_keys(cfg, map_side) if k not in batch]
     if missing:
         raise KeyError(
             f"batch lacks key(s) {missing} needed by model.modality="
@@ -50,15 +51,17 @@ class SegLocNet(nn.Module):
     ``lidar_latent`` (B, 16, 16, D) for the built branches; ``bev_features`` (B, 128, 128, F)
     the decoder's last features; for the NM variant ``bev_match`` (B, D', 128, 128),
     ``map_match`` (B, D', 256, 256) (unit-norm per pixel, channels first like the solver's
-    inputs) and ``match_scale`` () the learned score factor.
+    inputs) and ``match_scale`` () the learned score factor. ``map_side=False`` leaves the
+    map side out (no ``map_match``: the localize step computes the BEV once per frame and the
+    neural map per tile, :func:`seglocnet_jax.model.api.encode_map`).
     """
 
     cfg: ModelConfig
 
     @nn.compact
-    def __call__(self, batch: dict, deterministic: bool = True):
+    def __call__(self, batch: dict, deterministic: bool = True, map_side: bool = True):
         cfg = self.cfg
-        check_batch(batch, cfg)
+        check_batch(batch, cfg, map_side=map_side)
         aux, latents, skips = {}, [], {}
         if cfg.use_camera:
             cam, cam_aux = CameraEncoder(cfg, name="camera")(
@@ -76,8 +79,9 @@ class SegLocNet(nn.Module):
         aux["bev_features"] = feats
         if cfg.variant == "nm":
             bev_match = BevMatchingHead(cfg, name="bev_match")(feats)  # (B, 128, 128, D')
-            map_match = NeuralMapEncoder(cfg, name="neural_map")(batch["tile"])
             aux["bev_match"] = jnp.moveaxis(bev_match, -1, 1)  # (B, D', 128, 128)
-            aux["map_match"] = jnp.moveaxis(map_match, -1, 1)  # (B, D', 256, 256)
+            if map_side:
+                map_match = NeuralMapEncoder(cfg, name="neural_map")(batch["tile"])
+                aux["map_match"] = jnp.moveaxis(map_match, -1, 1)  # (B, D', 256, 256)
             aux["match_scale"] = MatchScale(cfg.nm_init_scale, name="match_scale")()
         return jnp.moveaxis(logits, -1, 1), aux  # (B, C, 128, 128)

@@ -4,20 +4,17 @@ Every sequence (a simulated drive, a nuScenes scene, an AV2 log) of a split is t
 Bayes filter over the solver's pose grid (:mod:`seglocnet_jax.tracking`), frame by frame::
 
     frame 0:  belief = uniform over the 129 x 129 x K cells around the record's stored prior
-              (the prior box); with eval.tracker.acquire_size (off by default) inside the
-              257 x 257 acquisition window; with eval.tracker.hypotheses > 1 its posterior is
-              split among windows that cover it (tracking.hypotheses), every later step
-              below then runs per window and the windows are weighted by their evidence
+              (the prior box); with eval.tracker.hypotheses > 1 its posterior is split among
+              windows that cover it (tracking.hypotheses), every later step below then runs
+              per window and the windows are weighted by their evidence
     frame t:  belief = predict(belief, odometry[t])          # the vehicle's own odometry
               tile   = the map raster cut around the belief's window centre (never the truth)
               volume = the one localize step (evaluation.make_localize_step, volume variant)
               belief = update(belief, log_softmax(volume / T))   # loss detection + re-widening
               (eval.tracker.off_road > 0: plus the on-road prior of the tile's road channel)
-              (acquisition window: narrowed to the 129-cell window once the box around the
-              mode holds the belief; a detected loss goes back to it. Tracking window,
-              eval.tracker.track_size: one window left and locked on, the filter narrows to
-              the box of that many cells around the mode, its likelihood the centre of the
-              volume; a detected loss widens it back)
+              (tracking window, eval.tracker.track_size: one window left and locked on, the
+              filter narrows to the box of that many cells around the mode, its likelihood
+              the centre of the volume; a detected loss widens it back)
 
 What the filter reads: the sensors (through the network or, for ``bev_source="gt"``, the GT
 labels), the map, the first frame's stored coarse prior and the odometry. The odometry is the
@@ -33,7 +30,8 @@ validation split (:class:`TemperatureFit`: the mean GT-cell log-likelihood accum
 batch over a log grid of ``T``, then a parabola through the best three points; no volume is
 kept), then, with ``eval.temperature_drives``, on validation drives
 (:func:`choose_filter_temperature`: the drives tracked at that ``T`` times each of
-``eval.temperature_scales``, the best mean log posterior of the GT cell kept). The single-frame
+``eval.temperature_scales``, all candidates in one pass with one network pass per frame, the
+best mean log posterior of the GT cell kept). The single-frame
 fit treats every frame as independent evidence; along a drive the frames overlap, their errors
 are correlated, and the filter fed the single-frame ``T`` is overconfident.
 
@@ -68,19 +66,23 @@ Per split (:func:`summarize`), with these definitions:
   first ``WARMUP_STEPS`` lockstep steps (compilation); ``index_s``: reading the split's
   sequence metadata (every record decoded once); ``seconds``: the split, all included.
 
-Modules: :mod:`.drives` (the drives of a split), :mod:`.temperature` (the streamed fit),
-:mod:`.tracks` (the filter's config, its windows and the lockstep loop), :mod:`.report`
-(numbers, arrays, figures);
+Modules: :mod:`.config` (the ``eval`` settings and the filter's config built from them),
+:mod:`.drives` (the drives of a split), :mod:`.temperature` (the streamed fit),
+:mod:`.drive_filter` (one drive through the filter: its windows, predict / tile / update /
+read-out), :mod:`.tracks` (the lockstep loop), :mod:`.report` (numbers, arrays, figures);
 :func:`evaluate_sequential` ties them for the apps.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 
 from seglocnet_jax import viz
-from seglocnet_jax.evaluation import EvalConfig, LocalizeStep
+from seglocnet_jax.evaluation import LocalizeStep
+from seglocnet_jax.sequential.config import EvalConfig, TrackerSettings, tracker_config
+from seglocnet_jax.sequential.drive_filter import DriveFilter, Track, filter_tile, start_belief
 from seglocnet_jax.sequential.drives import Drive, DriveSplit, drive_seed
 from seglocnet_jax.sequential.report import (
     CONVERGED_M,
@@ -94,19 +96,13 @@ from seglocnet_jax.sequential.report import (
     write_arrays,
     write_figures,
 )
-from seglocnet_jax.sequential.settings import tracker_config
 from seglocnet_jax.sequential.temperature import (
     TemperatureFit,
     choose_filter_temperature,
     fit_temperature,
     gt_cells,
 )
-from seglocnet_jax.sequential.tracks import (
-    Track,
-    filter_tile,
-    start_belief,
-    track_split,
-)
+from seglocnet_jax.sequential.tracks import track_candidates, track_split
 
 __all__ = [
     "TRACKED_M",
@@ -114,6 +110,8 @@ __all__ = [
     "MAX_LOST_RUN",
     "RECOVERY_FRAMES",
     "MASSES",
+    "EvalConfig",
+    "TrackerSettings",
     "tracker_config",
     "drive_seed",
     "TemperatureFit",
@@ -123,9 +121,11 @@ __all__ = [
     "Drive",
     "DriveSplit",
     "Track",
+    "DriveFilter",
     "filter_tile",
     "start_belief",
     "track_split",
+    "track_candidates",
     "drive_summary",
     "summarize",
     "scalars",
@@ -156,93 +156,37 @@ def evaluate_sequential(
     (``sequential/<split>.npz``) and, with ``eval.num_figures > 0``, figures
     (``figures/sequential/``: drives, error vs distance, the calibration figure)."""
     cfg = tracker_config(eval_cfg, num_rotations, channels)
+    open_split = functools.partial(
+        DriveSplit,
+        dataset_dir,
+        map_variant=map_variant,
+        loader_cfg=loader_cfg,
+        threads=max(1, loader_cfg.num_threads),
+    )
+    common = {
+        "cfg": cfg,
+        "odometry_cfg": eval_cfg.odometry,
+        "odometry_seed": eval_cfg.odometry_seed,
+        "batch_size": eval_cfg.batch_size,
+        "place": place,
+    }
+    run = functools.partial(track_split, step, params, **common)
+    candidates = functools.partial(track_candidates, step, params, **common)
     t_fit = time.time()
-    if eval_cfg.temperature is None:
-        batches, n = temperature_batches()
-        temperature, info = fit_temperature(
-            step,
-            params,
-            batches,
-            num_batches=n,
-            place=place,
-            num_rotations=num_rotations,
-            desc=f"temperature fit ({eval_cfg.temperature_split})",
-        )
-        fit = {"split": eval_cfg.temperature_split, **info, "single_frame": temperature}
-        if eval_cfg.temperature_drives:
-            name = eval_cfg.temperature_drives
-            split = DriveSplit(
-                dataset_dir, name, map_variant, loader_cfg, threads=max(1, loader_cfg.num_threads)
-            )
-            try:
-                temperature, table = choose_filter_temperature(
-                    step,
-                    params,
-                    split,
-                    split.drives[: eval_cfg.max_drives],
-                    base=temperature,
-                    scales=eval_cfg.temperature_scales,
-                    cfg=cfg,
-                    odometry_cfg=eval_cfg.odometry,
-                    odometry_seed=eval_cfg.odometry_seed,
-                    batch_size=eval_cfg.batch_size,
-                    place=place,
-                )
-            finally:
-                split.close()
-            # The best at either end of the scales: the optimum may lie beyond them (flagged).
-            temps = [row["temperature"] for row in table]
-            edge = len(temps) > 1 and temperature in (temps[0], temps[-1])
-            if edge:
-                print(
-                    f"[seglocnet] warning: the filter temperature {temperature:.3g} is at the "
-                    f"edge of eval.temperature_scales {list(eval_cfg.temperature_scales)} on "
-                    f"{name}; the best may lie beyond them",
-                    flush=True,
-                )
-            fit["filter"] = {"split": name, "candidates": table, "at_scale_edge": edge}
-    else:
-        temperature, fit = float(eval_cfg.temperature), None
+    temperature, fit = _temperature(
+        step, params, eval_cfg, candidates, open_split, place, num_rotations, temperature_batches
+    )
     t_fit = time.time() - t_fit
     results = {}
-    figure_dir = os.path.join(output_dir, "figures", "sequential") if output_dir else None
     for name in eval_cfg.tracked_splits():
         t0 = time.time()
-        split = DriveSplit(
-            dataset_dir, name, map_variant, loader_cfg, threads=max(1, loader_cfg.num_threads)
-        )
+        split = open_split(name)
         t_index = time.time() - t0  # every record decoded once for its sequence metadata
         try:
             drives = split.drives[: eval_cfg.max_drives]
-            tracks, timing = track_split(
-                step,
-                params,
-                split,
-                drives,
-                cfg=cfg,
-                odometry_cfg=eval_cfg.odometry,
-                odometry_seed=eval_cfg.odometry_seed,
-                temperature=temperature,
-                batch_size=eval_cfg.batch_size,
-                place=place,
-                desc=f"sequential {name}",
-            )
+            tracks, timing = run(split, drives, temperature=temperature, desc=f"sequential {name}")
             summary = summarize(tracks)
-            if output_dir:
-                write_arrays(tracks, os.path.join(output_dir, "sequential", f"{name}.npz"))
-            if figure_dir and eval_cfg.num_figures:
-                write_figures(
-                    tracks, split, figure_dir, num_drives=eval_cfg.num_figures, channels=channels
-                )
-                if name == eval_cfg.calibration_split:
-                    viz.reliability_figure(
-                        os.path.join(figure_dir, "calibration.png"),
-                        MASSES,
-                        [summary["coverage"][f"{m:g}"] for m in MASSES],
-                        [summary["ellipse_coverage"][f"{m:g}"] for m in MASSES],
-                        title=f"calibration on {name} ({summary['frames']} frames, T = "
-                        f"{temperature:.3g})",
-                    )
+            _write(tracks, summary, split, eval_cfg, output_dir, channels, temperature)
         finally:
             split.close()
         frames = timing["frames"]
@@ -262,3 +206,67 @@ def evaluate_sequential(
         )
         results[name] = summary
     return results
+
+
+def _temperature(step, params, eval_cfg, candidates, open_split, place, num_rotations, batches_of):
+    """The filter's temperature and the record of its fit (None when given): fitted on single
+    frames of ``eval.temperature_split``, then chosen on the drives of
+    ``eval.temperature_drives`` (:func:`choose_filter_temperature`; ``candidates``: the
+    tracking of a split at several temperatures with the run's filter)."""
+    if eval_cfg.temperature is not None:
+        return float(eval_cfg.temperature), None
+    batches, n = batches_of()
+    temperature, info = fit_temperature(
+        step,
+        params,
+        batches,
+        num_batches=n,
+        place=place,
+        num_rotations=num_rotations,
+        desc=f"temperature fit ({eval_cfg.temperature_split})",
+    )
+    fit = {"split": eval_cfg.temperature_split, **info, "single_frame": temperature}
+    if not eval_cfg.temperature_drives:
+        return temperature, fit
+    name = eval_cfg.temperature_drives
+    split = open_split(name)
+    try:
+        drives = split.drives[: eval_cfg.max_drives]
+        temperature, table = choose_filter_temperature(
+            candidates, split, drives, base=temperature, scales=eval_cfg.temperature_scales
+        )
+    finally:
+        split.close()
+    # The best at either end of the scales: the optimum may lie beyond them (flagged).
+    temps = [row["temperature"] for row in table]
+    edge = len(temps) > 1 and temperature in (temps[0], temps[-1])
+    if edge:
+        print(
+            f"[seglocnet] warning: the filter temperature {temperature:.3g} is at the edge of "
+            f"eval.temperature_scales {list(eval_cfg.temperature_scales)} on {name}; the best "
+            "may lie beyond them",
+            flush=True,
+        )
+    fit["filter"] = {"split": name, "candidates": table, "at_scale_edge": edge}
+    return temperature, fit
+
+
+def _write(tracks, summary, split, eval_cfg, output_dir, channels, temperature) -> None:
+    """The split's per-frame arrays and, with ``eval.num_figures``, its figures (and the
+    calibration figure of the calibration split)."""
+    if not output_dir:
+        return
+    name = split.name
+    write_arrays(tracks, os.path.join(output_dir, "sequential", f"{name}.npz"))
+    if not eval_cfg.num_figures:
+        return
+    figure_dir = os.path.join(output_dir, "figures", "sequential")
+    write_figures(tracks, split, figure_dir, num_drives=eval_cfg.num_figures, channels=channels)
+    if name == eval_cfg.calibration_split:
+        viz.reliability_figure(
+            os.path.join(figure_dir, "calibration.png"),
+            MASSES,
+            [summary["coverage"][f"{m:g}"] for m in MASSES],
+            [summary["ellipse_coverage"][f"{m:g}"] for m in MASSES],
+            title=f"calibration on {name} ({summary['frames']} frames, T = {temperature:.3g})",
+        )

@@ -9,9 +9,9 @@ import re
 
 import numpy as np
 
-from seglocnet_jax import metrics, viz
+from seglocnet_jax import fileio, metrics, viz
+from seglocnet_jax.sequential.drive_filter import Track
 from seglocnet_jax.sequential.drives import DriveSplit
-from seglocnet_jax.sequential.tracks import Track
 
 TRACKED_M = 5.0  # m: a frame is tracked when the filtered error is at most this, else lost
 CONVERGED_M = 2.0  # m: converged / recovered when the error is at most this
@@ -62,7 +62,6 @@ def drive_summary(track: Track) -> dict:
         "lost_episodes": len(episodes),
         "lost_episodes_detected": int(flagged),
         "longest_lost_run": int(max((b - a for a, b in episodes), default=0)),
-        "frames_acquiring": int(np.sum(track.acquiring)),
         "frames_narrowed": int(np.sum(track.narrowed)),
         "frames_multi_hypothesis": int(np.sum(track.hypotheses > 1)),
         "odometry_scale": float(track.scale[-1]),  # the filter's estimate at the last frame
@@ -103,7 +102,6 @@ def summarize(tracks: list[Track], masses=MASSES) -> dict:
         "ellipse_coverage": {f"{m:g}": _pct(d2 <= -2 * math.log(1 - m)) for m in masses},
     }
     out["coverage_90"] = _pct(above < 0.9)
-    out["acquiring_pct"] = _pct(np.concatenate([t.acquiring for t in tracks]))
     out["narrowed_pct"] = _pct(np.concatenate([t.narrowed for t in tracks]))
     # Windows tracked per frame (tracking.hypotheses; 1 without a bank).
     out["hypotheses_mean"] = float(np.concatenate([t.hypotheses for t in tracks]).mean())
@@ -205,8 +203,8 @@ def write_figures(
 def write_arrays(tracks: list[Track], path: str) -> str:
     """Per-frame arrays of a split (``.npz``): ids, GT, single-frame and filtered poses, the
     posterior mean and covariance, the mass above the GT cell, its log posterior, the
-    detected losses, the frames tracked in the acquisition window and in the tracking window
-    and the windows tracked after each frame."""
+    detected losses, the frames tracked in the tracking window and the windows tracked after
+    each frame."""
     cat = {
         "sequence_id": np.concatenate([[t.drive.sequence_id] * len(t.drive) for t in tracks]),
         "frame_index": np.concatenate([t.drive.frame_index for t in tracks]),
@@ -221,14 +219,11 @@ def write_arrays(tracks: list[Track], path: str) -> str:
         "above",
         "log_p_gt",
         "lost",
-        "acquiring",
         "narrowed",
         "hypotheses",
         "scale",
     ):
         cat[key] = np.concatenate([getattr(t, key) for t in tracks])
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = path + ".tmp.npz"
-    np.savez_compressed(tmp, **cat)
-    os.replace(tmp, path)
+    with fileio.atomic_path(path) as tmp:  # keeps the .npz suffix (savez adds none then)
+        np.savez_compressed(tmp, **cat)
     return path

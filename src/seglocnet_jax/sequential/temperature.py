@@ -34,8 +34,8 @@ def _objective(volume, cells, weights, log_t):
 
 class TemperatureFit:
     """Streaming fit of the likelihood temperature: the ``T`` maximizing the mean
-    ``log_softmax(volume / T)[gt cell]`` (the very log-likelihood the filter is fed; the
-    objective of :func:`tracking.fit_temperature`), accumulated per batch on
+    ``log_softmax(volume / T)[gt cell]`` (the very log-likelihood the filter is fed),
+    accumulated per batch on
     :data:`TEMPERATURE_GRID` and refined by a parabola in ``log T`` through the best three grid
     points. Memory: one batch of volumes at a time."""
 
@@ -102,46 +102,26 @@ def fit_temperature(
 
 
 def choose_filter_temperature(
-    step: LocalizeStep,
-    params,
-    split,
-    drives,
-    *,
-    base: float,
-    scales,
-    cfg,
-    odometry_cfg,
-    odometry_seed: int,
-    batch_size: int,
-    place,
+    track, split, drives, *, base: float, scales
 ) -> tuple[float, list[dict]]:
     """The filter's temperature, chosen on validation drives: ``drives`` (of the
     :class:`~seglocnet_jax.sequential.drives.DriveSplit` ``split``) are tracked at
-    ``base * s`` for each scale ``s`` (the volume step only, no single-frame pass) and the
-    ``T`` with the best mean log posterior of the GT cell (the filter's log score, clamped at
-    ``tracks.LOG_P_FLOOR``: a proper score, so it rewards a posterior that is both sharp and
-    calibrated) is returned, with one row per candidate (``scale``, ``temperature``,
+    ``base * s`` for each scale ``s``, all candidates in one pass over the drives
+    (``track(split, drives, temperatures=, desc=, single=)``:
+    :func:`~seglocnet_jax.sequential.tracks.track_candidates` with the run's filter: one
+    network pass per frame for every candidate; no single-frame pass) and the ``T`` with the
+    best mean log posterior of the GT cell (the filter's log score, clamped at
+    ``drive_filter.LOG_P_FLOOR``: a proper score, so it rewards a posterior that is both sharp
+    and calibrated) is returned, with one row per candidate (``scale``, ``temperature``,
     ``mean_log_p_gt``, ``tracked_pct``, ``R@1m``, ``coverage_90``)."""
-    from seglocnet_jax.sequential import report, tracks  # the drives' loop and numbers
+    from seglocnet_jax.sequential import report  # the numbers of the tracks
 
+    temps = [float(base) * float(scale) for scale in scales]
+    desc = f"filter temperatures {', '.join(f'{t:.3g}' for t in temps)} ({split.name})"
+    out, _ = track(split, drives, temperatures=temps, desc=desc, single=False)
     table = []
-    for scale in scales:
-        t = float(base) * float(scale)
-        out, _ = tracks.track_split(
-            step,
-            params,
-            split,
-            drives,
-            cfg=cfg,
-            odometry_cfg=odometry_cfg,
-            odometry_seed=odometry_seed,
-            temperature=t,
-            batch_size=batch_size,
-            place=place,
-            desc=f"filter temperature {t:.3g} ({split.name})",
-            single=False,
-        )
-        s = report.summarize(out)
+    for scale, t, tracks in zip(scales, temps, out, strict=True):
+        s = report.summarize(tracks)
         table.append(
             {
                 "scale": float(scale),

@@ -32,16 +32,11 @@ One frame of a drive::
   impossible.
 * track loss: a CUSUM of the per-frame log Bayes factor "the prior predicted this frame" vs "a
   uniform prior did" (``log sum prior * L - log mean L``), plus belief-shape tests (peak mass,
-  entropy) once the filter has locked on. A loss re-widens the prior (uniform, or a Gaussian
-  around the last estimate) and reapplies the frame's likelihood; losses are counted.
-* acquisition (``acquire_size``): the first frames, and those after a detected loss, run in a
-  larger window (257 x 257 cells, a 384-pixel tile) whose prior is the coarse prior's box
-  (uniform over the ``size`` window around it, zero outside). A first peak at the far side of
-  the box then moves the window onto it without losing the truth's cells; :func:`narrow` cuts
-  the belief to the ``size`` window around its mode once that box holds ``acquire_mass``.
+  entropy) once the filter has locked on. A loss re-widens the prior (uniform over the window)
+  and reapplies the frame's likelihood; losses are counted.
 * tracking window (``track_size``, 65 cells): a drive down to one window that has locked on
-  (its ``track_size`` box around the mode held ``acquire_mass`` for ``acquire_frames``
-  frames) is cut to that box by :func:`narrow`. It runs the full window's filter on a quarter
+  (its ``track_size`` box around the mode held nearly all the belief for a few frames) is cut
+  to that box by :func:`narrow`. It runs the full window's filter on a quarter
   of the cells: its likelihood is the centre of the volume of the full tile around the window
   centre (:func:`crop_likelihood`), the floor is spread over the full window's cells, the loss
   test compares against a uniform belief over the full window (``update(..., log_mean=)``)
@@ -95,7 +90,6 @@ from seglocnet_jax.tracking.odometry import (
 from seglocnet_jax.tracking.posterior import (
     crop_likelihood,
     estimate,
-    fit_temperature,
     in_credible_region,
     reset,
     road_log_prior,
@@ -122,7 +116,6 @@ __all__ = [
     "update_tracking_window",
     "estimate",
     "in_credible_region",
-    "fit_temperature",
     "OdometryConfig",
     "ScaleEstimate",
     "relative_motion",

@@ -30,10 +30,6 @@ class TrackerConfig:
       kernel_radius: most half-width (cells, bins) of the blur kernels: a larger sigma is
         truncated; a smaller one uses fewer taps (out to 5.7 sigmas, see :func:`predict`).
       floor: weight of a uniform mixed into the prior at every update.
-      outlier: weight of a flat outlier term in each frame's likelihood: the update multiplies
-        the prior by ``(1 - outlier) L / sum L + outlier / n`` (``n`` cells), so one frame whose
-        peak is wrong (a look-alike street) moves a confident belief by at most a bounded
-        factor instead of taking it over; 0: the raw likelihood.
       lost_log_odds: nats; a loss when the CUSUM of the prior-vs-uniform log Bayes factor falls
         below ``-lost_log_odds`` (0 disables).
       lock_peak_mass: the filter locks on once the peak mass reaches this.
@@ -41,30 +37,16 @@ class TrackerConfig:
       lost_entropy: when locked, a loss when the normalized (x, y) entropy exceeds this
         (1 disables).
       peak_radius: m; the peak mass is the posterior mass within this (box) of the MAP (x, y).
-      recover_sigma: m; the prior after a loss: a Gaussian of this sigma around the window
-        centre (the last estimate), uniform over yaw; 0 means uniform over the window.
-      acquire_size: cells per axis of the *acquisition window* (odd, > ``size``; 0: none): the
-        first frames (and the frames after a detected loss) are tracked in this larger window,
-        the prior uniform over the ``size`` box around the coarse prior, so that a first peak
-        at the far side of the box drags the window away without losing the truth's cells.
-        Its tile is ``acquire_size - 1 + bev_size`` pixels (384 for 257). Off by default: on
-        the validation drives it measured worse (docs/sequential.md).
-      acquire_mass, acquire_frames: the filter leaves a window for the next smaller one
-        (:func:`narrow`: the acquisition window for the ``size`` one, that for the tracking
-        window) once the smaller box around the mode has held at least ``acquire_mass`` of the
-        belief for ``acquire_frames`` consecutive frames (one confident frame may be
-        confidently wrong: a look-alike street at the far side of the box).
       track_size: cells per axis of the *tracking window* (odd, < ``size``; 0: none): once a
-        drive is down to one window whose ``track_size`` box around the mode has held
-        ``acquire_mass`` for ``acquire_frames`` frames, the filter narrows to that box (its
-        likelihood: the centre of the ``size`` window's volume, the tile the network was
-        trained on cut around the same point); a detected loss widens it back to the ``size``
-        window (the acquisition window with one). Locked, the belief spans a few metres: the
+        drive is down to one window whose ``track_size`` box around the mode has held nearly
+        all the belief for a few frames (:func:`narrow`; the sequential loop decides when),
+        the filter narrows to that box (its likelihood: the centre of the ``size`` window's
+        volume, the tile the network was trained on cut around the same point); a detected
+        loss widens it back to the ``size`` window. Locked, the belief spans a few metres: the
         ``size`` window's far cells cost every pass over the volume and hold nothing. The
         tracking window runs the ``size`` window's filter on fewer cells: its floor, loss test
         and entropy are the ``size`` window's (``reference_size``, the update's ``log_mean``),
-        and a loss there resets the ``size`` window with the frame's whole volume. Needs
-        ``outlier = 0`` (the robust likelihood is normalized over the window).
+        and a loss there resets the ``size`` window with the frame's whole volume.
       reference_size: cells per axis of the window whose filter this one runs (0: this one;
         the tracking window's is ``size``): the floor is spread over its cells and the
         entropy normalized by its count. Derived, not a setting.
@@ -72,9 +54,7 @@ class TrackerConfig:
         first frame's posterior (over the prior box) is split among windows that cover it
         greedily, each centred on the strongest cell not yet covered (the first one is the
         single window's; :func:`split_modes`), and the windows are weighted by their evidence
-        (a mixture: see :mod:`~seglocnet_jax.tracking.hypotheses`). Needs ``outlier = 0``
-        (the robust likelihood is normalized per window, so windows could not be compared)
-        and no acquisition window.
+        (a mixture: see :mod:`~seglocnet_jax.tracking.hypotheses`).
       scale_prior_m: metres of prior weight on 1 in the filter's running estimate of the
         drive's odometry distance scale (:class:`~seglocnet_jax.tracking.odometry.
         ScaleEstimate`: the filtered track's along-track steps against the odometry's
@@ -100,16 +80,11 @@ class TrackerConfig:
     sigma_yaw_per_rad: float = 0.05
     kernel_radius: int = 3
     floor: float = 1e-9
-    outlier: float = 0.0
     lost_log_odds: float = 10.0
     lock_peak_mass: float = 0.5
     lost_peak_mass: float = 0.05
     lost_entropy: float = 0.9
     peak_radius: float = 2.0
-    recover_sigma: float = 0.0
-    acquire_size: int = 0
-    acquire_mass: float = 0.99
-    acquire_frames: int = 3
     hypotheses: int = 1
     hypothesis_prune: float = 10.0
     scale_prior_m: float = 200.0
@@ -128,18 +103,11 @@ class TrackerConfig:
             raise ValueError(f"kernel_radius must be >= 0, got {self.kernel_radius}")
         if not 0.0 <= self.floor < 1.0:
             raise ValueError(f"floor must be in [0, 1), got {self.floor}")
-        if not 0.0 <= self.outlier < 1.0:
-            raise ValueError(f"outlier must be in [0, 1), got {self.outlier}")
         for key in ("sigma_xy", "sigma_xy_per_m", "sigma_yaw", "sigma_yaw_per_rad"):
             if getattr(self, key) < 0:
                 raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")
-        if self.lost_log_odds < 0 or self.recover_sigma < 0 or self.peak_radius < 0:
-            raise ValueError("lost_log_odds, recover_sigma and peak_radius must be >= 0")
-        if self.acquire_size and (self.acquire_size <= self.size or self.acquire_size % 2 == 0):
-            raise ValueError(
-                f"acquire_size must be 0 (no acquisition window) or odd and > size "
-                f"({self.size}), got {self.acquire_size}"
-            )
+        if self.lost_log_odds < 0 or self.peak_radius < 0:
+            raise ValueError("lost_log_odds and peak_radius must be >= 0")
         if self.track_size and (
             self.track_size < 3 or self.track_size >= self.size or self.track_size % 2 == 0
         ):
@@ -147,20 +115,10 @@ class TrackerConfig:
                 f"track_size must be 0 (no tracking window) or odd, >= 3 and < size "
                 f"({self.size}), got {self.track_size}"
             )
-        if self.track_size and self.outlier > 0:
-            raise ValueError(
-                f"track_size = {self.track_size} needs outlier = 0 (got {self.outlier}): the "
-                "robust likelihood is normalized over the window, the tracking window's is not "
-                "the full window's"
-            )
         if self.reference_size and self.reference_size < self.size:
             raise ValueError(
                 f"reference_size must be 0 or >= size ({self.size}), got {self.reference_size}"
             )
-        if not 0.0 < self.acquire_mass <= 1.0:
-            raise ValueError(f"acquire_mass must be in (0, 1], got {self.acquire_mass}")
-        if self.acquire_frames < 1:
-            raise ValueError(f"acquire_frames must be >= 1, got {self.acquire_frames}")
         if self.hypotheses < 1:
             raise ValueError(f"hypotheses must be >= 1, got {self.hypotheses}")
         if self.scale_prior_m < 0:
@@ -169,18 +127,6 @@ class TrackerConfig:
             raise ValueError(f"off_road must be >= 0 and finite (nats), got {self.off_road}")
         if self.hypothesis_prune <= 0:
             raise ValueError(f"hypothesis_prune must be > 0, got {self.hypothesis_prune}")
-        if self.hypotheses > 1 and (self.outlier > 0 or self.acquire_size):
-            raise ValueError(
-                f"hypotheses = {self.hypotheses} needs outlier = 0 and acquire_size = 0 (got "
-                f"{self.outlier} and {self.acquire_size}): the windows' evidence must be "
-                "comparable, and the acquisition window is the other answer to a far first peak"
-            )
-
-    def acquisition(self) -> TrackerConfig | None:
-        """The config of the acquisition window (``size = acquire_size``; None without one)."""
-        if not self.acquire_size:
-            return None
-        return dataclasses.replace(self, size=self.acquire_size, acquire_size=0, track_size=0)
 
     def tracking_window(self) -> TrackerConfig | None:
         """The config of the tracking window (``size = track_size``; None without one)."""
@@ -189,7 +135,6 @@ class TrackerConfig:
         return dataclasses.replace(
             self,
             size=self.track_size,
-            acquire_size=0,
             track_size=0,
             reference_size=self.reference_size or self.size,
         )
@@ -256,7 +201,6 @@ def init_belief(
     sigma: float | None = None,
     yaw: float | None = None,
     yaw_sigma: float | None = None,
-    box: float | None = None,
 ) -> Belief:
     """The belief before the first frame, its window centred on the prior ``xy`` (world m)
     snapped to the nearest lattice corner.
@@ -267,8 +211,6 @@ def init_belief(
         the lattice on a raster's pixel corners.
       sigma: m; ``None``: uniform over the window, else a Gaussian around ``xy``.
       yaw, yaw_sigma: rad; a wrapped Gaussian over yaw (``None``: uniform).
-      box: m; zero outside the square of this half-width around the window centre (``None``:
-        the whole window), e.g. the prior box inside an acquisition window.
     """
     x, y = (float(v) for v in xy)
     ox, oy = (float(v) for v in origin)
@@ -280,11 +222,6 @@ def init_belief(
     if sigma is not None:
         ex, ey = cx + dx[None, :] - x, cy + dy[:, None] - y
         log_xy = -0.5 * (ex**2 + ey**2) / max(sigma, 1e-6) ** 2
-    if box is not None:
-        outside = (np.abs(dx)[None, :] > box + 1e-6) | (np.abs(dy)[:, None] > box + 1e-6)
-        if outside.all():
-            raise ValueError(f"box {box} m holds no cell of the window")
-        log_xy = np.where(outside, -np.inf, log_xy)
     log_k = np.zeros(cfg.num_rotations)
     if yaw is not None:
         yaws = geometry.yaw_from_rotation(np.arange(cfg.num_rotations), cfg.num_rotations)

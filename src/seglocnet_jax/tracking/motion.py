@@ -249,11 +249,12 @@ def _narrow_kernel(prob, centre, map_cell, wide: TrackerConfig, cfg: TrackerConf
 def narrow(
     belief: Belief, wide: TrackerConfig, cfg: TrackerConfig, *, map_cell=None
 ) -> tuple[Belief, jax.Array]:
-    """The belief of the acquisition window ``wide`` cut to the ``cfg`` window around its mode
-    (``wide.size`` > ``cfg.size``, same lattice): returns the renormalized belief and the mass
-    it kept (the tracker narrows once that reaches ``cfg.acquire_mass``). The world pose of
-    every kept cell is unchanged. ``map_cell``: the mode ``(k, h, w)`` when the caller has it
-    (the estimate :func:`update` returned with this belief): saves a pass over the volume."""
+    """The belief of the window ``wide`` cut to the smaller ``cfg`` window around its mode
+    (``wide.size`` > ``cfg.size``, same lattice: the tracking window of a full one): returns
+    the renormalized belief and the mass it kept (the sequential loop narrows once that stays
+    near 1). The world pose of every kept cell is unchanged. ``map_cell``: the mode ``(k, h,
+    w)`` when the caller has it (the estimate :func:`update` returned with this belief): saves
+    a pass over the volume."""
     if wide.size <= cfg.size or (wide.num_rotations, wide.resolution, wide.bev_size) != (
         cfg.num_rotations,
         cfg.resolution,

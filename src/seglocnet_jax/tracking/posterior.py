@@ -1,5 +1,5 @@
 """Update by a frame's likelihood, estimates, credible regions, track-loss detection and
-recovery, and the likelihood temperature fit (see the package docstring)."""
+recovery (see the package docstring)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,8 @@ import math
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from seglocnet_jax import geometry, solver
+from seglocnet_jax import geometry
 from seglocnet_jax.tracking.belief import (
     Belief,
     TrackerConfig,
@@ -76,30 +75,16 @@ def _estimate(belief: Belief, cfg: TrackerConfig, p_k=None) -> dict:
     }
 
 
-def _reset_prior(cfg: TrackerConfig):
-    """The re-widened prior ``(N, N)`` over (x, y) after a loss (uniform over yaw)."""
-    if cfg.recover_sigma <= 0:
-        return jnp.full((cfg.size, cfg.size), 1.0 / (cfg.size * cfg.size), jnp.float32)
-    dx, dy = _cell_offsets(cfg)
-    g = jnp.exp(-0.5 * (dx[None, :] ** 2 + dy[:, None] ** 2) / cfg.recover_sigma**2)
-    return (g / g.sum()).astype(jnp.float32)
-
-
-def _likelihood(log_lik, cfg: TrackerConfig):
+def _likelihood(log_lik):
     """The frame's likelihood over the cells, up to a constant: ``exp(log_lik - max)`` in
-    (0, 1], or with ``cfg.outlier`` > 0 the robust mixture ``(1 - outlier) L / mean L +
-    outlier`` (the normalized likelihood mixed with a flat outlier term, times ``n``)."""
-    lik = jnp.exp(log_lik - log_lik.max())  # (K, N, N) in (0, 1], max 1
-    if cfg.outlier <= 0:
-        return lik
-    mean = jnp.sum(lik, axis=(1, 2)).sum() / cfg.num_cells  # per slice first (XLA CPU)
-    return (1.0 - cfg.outlier) * lik / mean + cfg.outlier
+    (0, 1]."""
+    return jnp.exp(log_lik - log_lik.max())  # (K, N, N), max 1
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
 def _update_kernel(belief: Belief, log_lik, log_mean, cfg: TrackerConfig):
     n = cfg.num_cells
-    lik = _likelihood(log_lik, cfg)
+    lik = _likelihood(log_lik)
     # the prior with the floor (spread over the reference window's cells: a tracking window's
     # cells get the full window's floor)
     prior = (1.0 - cfg.floor) * belief.prob + cfg.floor / cfg.reference_cells
@@ -144,8 +129,8 @@ def _update_kernel(belief: Belief, log_lik, log_mean, cfg: TrackerConfig):
 
 @functools.partial(jax.jit, static_argnames="cfg")
 def _reset_kernel(belief: Belief, log_lik, cfg: TrackerConfig):
-    lik = _likelihood(log_lik, cfg)
-    post = _reset_prior(cfg)[None] * lik
+    # the re-widened prior: uniform over the window's (x, y) and over yaw
+    post = jnp.float32(1.0 / (cfg.size * cfg.size)) * _likelihood(log_lik)
     new = belief._replace(
         prob=post / post.sum(),
         cusum=jnp.zeros((), jnp.float32),
@@ -174,7 +159,7 @@ def update(
     Args:
       log_likelihood: ``(K, N, N)`` float, up to an additive constant: e.g.
         ``solver.log_softmax_volume(volume, temperature)`` of the frame's score volume, the
-        tile cut around this belief's window (see :func:`fit_temperature`).
+        tile cut around this belief's window.
       evidence: also return ``log_evidence`` (one more pass over the volume).
       log_mean: the log of the mean of ``exp(log_likelihood)`` over the reference window's
         cells (``cfg.reference_size``: a tracking window's likelihood is the centre of that
@@ -186,8 +171,8 @@ def update(
     Returns:
       The posterior and ``{"agreement": log Bayes factor of this frame (prior vs uniform,
       nats), "log_evidence" (with ``evidence`` only): log sum over the cells of prior *
-      exp(log_likelihood), the floor included (with ``cfg.outlier`` = 0; the weight of a
-      window among several hypotheses), "lost": a track loss was detected (the posterior is
+      exp(log_likelihood), the floor included (the weight of a window among several
+      hypotheses), "lost": a track loss was detected (the posterior is
       then the re-widened prior times this frame's likelihood), "estimate": :func:`estimate`
       of the returned posterior}``.
     """
@@ -195,13 +180,6 @@ def update(
     expected = (cfg.num_rotations, cfg.size, cfg.size)
     if log_lik.shape != expected:
         raise ValueError(f"log_likelihood must be {expected}, got {log_lik.shape}")
-    if evidence and cfg.outlier > 0:
-        raise ValueError(
-            f"evidence needs cfg.outlier = 0 (got {cfg.outlier}): the robust likelihood is "
-            "normalized per window, so its sum is no evidence"
-        )
-    if log_mean is not None and cfg.outlier > 0:
-        raise ValueError(f"log_mean needs cfg.outlier = 0, got {cfg.outlier}")
     if log_mean is not None:
         log_mean = jnp.asarray(log_mean, jnp.float32)
     new, info = _update_kernel(belief, log_lik, log_mean, cfg)
@@ -250,10 +228,9 @@ def update_tracking_window(
 
 
 def reset(belief: Belief, log_likelihood, cfg: TrackerConfig) -> tuple[Belief, dict]:
-    """The belief after a detected loss: the re-widened prior (uniform over the window, or
-    ``cfg.recover_sigma`` around its centre; uniform over yaw) times the frame's likelihood,
-    the loss counted, CUSUM and lock cleared (what :func:`update` does on a loss). Returns the
-    belief and its :func:`estimate`."""
+    """The belief after a detected loss: the re-widened prior (uniform over the window and
+    over yaw) times the frame's likelihood, the loss counted, CUSUM and lock cleared (what
+    :func:`update` does on a loss). Returns the belief and its :func:`estimate`."""
     log_lik = jnp.asarray(log_likelihood, jnp.float32)
     expected = (cfg.num_rotations, cfg.size, cfg.size)
     if log_lik.shape != expected:
@@ -291,52 +268,3 @@ def in_credible_region(belief: Belief, cell, mass: float = 0.9) -> jax.Array:
     p = belief.prob[cell[0] % k_dim, h, w]  # k wraps (a rounded k may be K)
     above = jnp.sum(jnp.where(belief.prob > p, belief.prob, 0.0))
     return inside & (above < mass)
-
-
-# --------------------------------------------------------------------------- temperature
-
-
-def fit_temperature(
-    volumes, gt_cells, bounds: tuple[float, float] = (1e-2, 1e5), iters: int = 40
-) -> float:
-    """The temperature ``T`` maximizing the mean log-likelihood of the GT cells,
-    ``mean_b log_softmax(volumes[b] / T)[gt_cells[b]]`` (fit it on a validation split).
-
-    The objective is concave in ``1 / T``, so a log-spaced grid over ``bounds`` brackets the
-    optimum and a golden-section search on ``log T`` refines it.
-
-    Args:
-      volumes: ``(B, K, H, W)`` raw score volumes.
-      gt_cells: ``(B, 3)`` int GT cells ``(k, h, w)`` (inside the volumes).
-    """
-    volumes = jnp.asarray(volumes, jnp.float32)
-    cells = np.asarray(gt_cells, np.int64)
-    b_dim, k_dim, h_dim, w_dim = volumes.shape
-    if cells.shape != (b_dim, 3):
-        raise ValueError(f"gt_cells must be ({b_dim}, 3), got {cells.shape}")
-    if (cells < 0).any() or (cells >= np.array([k_dim, h_dim, w_dim])).any():
-        raise ValueError("gt_cells must lie inside the volumes")
-    index = (np.arange(b_dim), cells[:, 0], cells[:, 1], cells[:, 2])
-
-    @jax.jit
-    def mean_ll(log_t):  # the very log-likelihood that update() is fed
-        return jnp.mean(solver.log_softmax_volume(volumes, jnp.exp(log_t))[index])
-
-    lo, hi = math.log(bounds[0]), math.log(bounds[1])
-    grid = np.linspace(lo, hi, 25)
-    values = [float(mean_ll(t)) for t in grid]
-    i = int(np.argmax(values))
-    a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
-    ratio = (math.sqrt(5) - 1) / 2
-    c, d = b - ratio * (b - a), a + ratio * (b - a)
-    fc, fd = float(mean_ll(c)), float(mean_ll(d))
-    for _ in range(iters):
-        if fc >= fd:
-            b, d, fd = d, c, fc
-            c = b - ratio * (b - a)
-            fc = float(mean_ll(c))
-        else:
-            a, c, fc = c, d, fd
-            d = a + ratio * (b - a)
-            fd = float(mean_ll(d))
-    return float(math.exp((a + b) / 2))
