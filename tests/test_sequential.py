@@ -293,16 +293,25 @@ def test_temperature_candidates_in_one_pass_are_the_separate_runs():
     split, temps = _FakeSplit(_raster(6), drive), (0.5, 2.0, 8.0)
     common = dict(cfg=cfg, odometry_cfg=_EXACT_ODOMETRY, odometry_seed=0, batch_size=1,
                   place=lambda b: b, desc="t", single=False)  # fmt: skip
+    solved = []
+
+    def counted(params, batch, figures, volume):
+        solved.append(len(batch["pose"]))
+        return peaks(params, batch, figures, volume)
+
     together, _ = sequential.track_candidates(
-        _FakeStep(peaks), None, split, [drive], temperatures=temps, **common
+        _FakeStep(counted), None, split, [drive], temperatures=temps, **common
     )
+    one_pass = sum(solved)
     for t, (got,) in zip(temps, together, strict=True):
         (want,), _ = sequential.track_split(
-            _FakeStep(peaks), None, split, [drive], temperature=t, **common
+            _FakeStep(counted), None, split, [drive], temperature=t, **common
         )
         for key in ("filtered", "mean", "cov_xy", "above", "log_p_gt", "hypotheses", "scale"):
             np.testing.assert_array_equal(getattr(got, key), getattr(want, key), err_msg=key)
     assert not np.array_equal(together[0][0].log_p_gt, together[2][0].log_p_gt)
+    # the candidates' coinciding windows share one volume: fewer solved tiles than 3 runs
+    assert one_pass < sum(solved) - one_pass, (one_pass, sum(solved) - one_pass)
 
 
 def test_each_window_of_the_bank_learns_the_odometry_scale_of_its_own_track():

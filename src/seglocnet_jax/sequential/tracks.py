@@ -12,6 +12,7 @@ import collections
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
@@ -117,18 +118,30 @@ def _volumes(step, params, place, bev, rows, owners, roads, temps, *, off_road, 
     frame's BEV (``bev``, row ``owners[i]`` for window row ``i``: the network does not run
     again) in padded batches of ``batch_size`` (static shapes: the first row repeated), over
     the row's temperature ``temps[i]``; with ``roads`` (the rows' road channels, or None) plus
-    the on-road prior."""
+    the on-road prior. Rows of one frame with the same tile centre (the temperature
+    candidates' windows often coincide) share one solver volume: it does not depend on T."""
+    key_of = [(o, np.asarray(r["tile_center"], np.float64).tobytes()) for o, r in zip(owners, rows)]
+    first = {}
+    for i, key in enumerate(key_of):
+        first.setdefault(key, i)
+    unique = list(first.values())  # row index of each distinct (frame, tile)
+    vols = []
+    for start in range(0, len(unique), batch_size):
+        chunk = unique[start : start + batch_size]
+        pad = batch_size - len(chunk)
+        batch = place(_stack([rows[i] for i in chunk + [chunk[0]] * pad]))
+        index = [owners[i] for i in chunk + [chunk[0]] * pad]
+        vol = step.solve(params, bev, batch, np.asarray(index), volume=True)["volume"]
+        vols.extend(vol[i] for i in range(len(chunk)))
+    slot = {key: n for n, key in enumerate(first)}
     out = []
     for start in range(0, len(rows), batch_size):
-        chunk = rows[start : start + batch_size]
+        chunk = list(range(start, min(start + batch_size, len(rows))))
         pad = batch_size - len(chunk)
-        batch = place(_stack(chunk + [chunk[0]] * pad))
-        index = owners[start : start + batch_size] + [owners[start]] * pad
-        vol = step.solve(params, bev, batch, np.asarray(index), volume=True)["volume"]
-        road = None
-        if roads is not None:
-            road = np.stack(roads[start : start + batch_size] + [roads[start]] * pad)
-        temp = np.asarray(temps[start : start + batch_size] + [temps[start]] * pad, np.float32)
+        take = chunk + [chunk[0]] * pad
+        vol = jnp.stack([vols[slot[key_of[i]]] for i in take])  # (B, K, N, N)
+        road = None if roads is None else np.stack([roads[i] for i in take])
+        temp = np.asarray([temps[i] for i in take], np.float32)
         lik = _log_likelihood(vol, temp, road, off_road)
         out.extend(lik[i] for i in range(len(chunk)))
     return jax.block_until_ready(out)  # dispatch is asynchronous: time the steps, not the filter
