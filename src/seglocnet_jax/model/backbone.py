@@ -1,4 +1,4 @@
-"""2D image backbones giving stride-16 feature maps: ResNet-style and VoVNet-style.
+"""2D image backbones giving stride-8 and stride-16 feature maps: ResNet-style and VoVNet-style.
 
 Both are initialized from scratch (no pretrained weights can be downloaded here). Input images
 are uint8 RGB; they are scaled to [0, 1] and standardized with the usual ImageNet statistics.
@@ -37,7 +37,8 @@ class ResNet(nn.Module):
     """Stride-2 stem, then three stride-2 stages of basic residual blocks (stride 16 total).
 
     ``widths``: (stem, stage1, stage2, stage3) channels; ``blocks``: blocks per stage.
-    ``(M, H, W, 3)`` standardized images -> ``(M, H/16, W/16, widths[-1])``.
+    ``(M, H, W, 3)`` standardized images -> the stage outputs ``[(M, H/4, W/4, widths[1]),
+    (M, H/8, W/8, widths[2]), (M, H/16, W/16, widths[3])]``.
     """
 
     widths: Sequence[int]
@@ -46,10 +47,12 @@ class ResNet(nn.Module):
     @nn.compact
     def __call__(self, x):
         x = ConvNormAct(self.widths[0], (3, 3), 2)(x)
+        stages = []
         for width, n in zip(self.widths[1:], self.blocks, strict=True):
             for i in range(n):
                 x = ResBlock(width, strides=2 if i == 0 else 1)(x)
-        return x
+            stages.append(x)
+        return stages
 
 
 class OSAModule(nn.Module):
@@ -76,7 +79,7 @@ class OSAModule(nn.Module):
 
 class VoVNet(nn.Module):
     """VoVNet-style backbone: stride-2 stem, then three stages of (3x3/2 max-pool, OSA
-    modules). Same widths/blocks convention and output stride as :class:`ResNet`."""
+    modules). Same widths/blocks convention and outputs as :class:`ResNet`."""
 
     widths: Sequence[int]
     blocks: Sequence[int]
@@ -85,11 +88,13 @@ class VoVNet(nn.Module):
     @nn.compact
     def __call__(self, x):
         x = ConvNormAct(self.widths[0], (3, 3), 2)(x)
+        stages = []
         for width, n in zip(self.widths[1:], self.blocks, strict=True):
             x = nn.max_pool(x, (3, 3), strides=(2, 2), padding="SAME")
             for _ in range(n):
                 x = OSAModule(max(width // 4, 8), width, self.num_layers)(x)
-        return x
+            stages.append(x)
+        return stages
 
 
 def make_backbone(

@@ -16,9 +16,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from seglocnet_jax import geometry
-from seglocnet_jax.model.backbone import STRIDE, check_image_size, make_backbone, normalize_images
+from seglocnet_jax.model.backbone import check_image_size, make_backbone, normalize_images
 from seglocnet_jax.model.config import LATENT_SIZE, PERCEPTION_RANGE, ModelConfig
-from seglocnet_jax.model.layers import MLP
+from seglocnet_jax.model.layers import MLP, upsample2x
 from seglocnet_jax.model.transformer import TransformerDecoder
 
 
@@ -78,6 +78,15 @@ def normalize_ego_points(points: jax.Array, z_range: tuple[float, float]) -> jax
     return points * scale + shift
 
 
+def fourier_features(x: jax.Array, num_frequencies: int) -> jax.Array:
+    """Sinusoidal encoding of coordinates in about [-1, 1] (PETR / NeRF style): each of the
+    ``(..., F)`` values becomes ``sin, cos`` of ``pi * 2**k * x`` for ``k < num_frequencies``,
+    ``(..., F * 2 * num_frequencies)``."""
+    freqs = jnp.pi * 2.0 ** jnp.arange(num_frequencies, dtype=jnp.float32)
+    angles = (x[..., None] * freqs).reshape(x.shape[:-1] + (-1,))
+    return jnp.concatenate([jnp.sin(angles), jnp.cos(angles)], axis=-1)
+
+
 def bev_reference_points() -> np.ndarray:
     """Ego ``(forward, left)`` of the 16x16 latent cell centres over +-32 m, normalized to
     [-1, 1]: ``(16, 16, 2)``; row 0 is the far front, columns run to the right."""
@@ -96,21 +105,28 @@ class CameraEncoder(nn.Module):
         cfg = self.cfg
         b, n, h, w, _ = images.shape
         check_image_size(h, w)
-        fh, fw, d = h // STRIDE, w // STRIDE, cfg.embed_dim
+        stride, d = cfg.token_stride, cfg.embed_dim
+        fh, fw = h // stride, w // stride
         x = normalize_images(images).reshape(b * n, h, w, 3)
-        x = make_backbone(
+        stages = make_backbone(
             cfg.backbone, cfg.backbone_widths, cfg.backbone_blocks, cfg.vovnet_layers
-        )(x)  # (B*N, h/16, w/16, Cb)
-        feats = nn.Dense(d, name="token_proj")(x).reshape(b, n * fh * fw, d)
+        )(x)  # stride 4, 8, 16
+        x = nn.Dense(d, name="token_proj")(stages[-1])  # (B*N, h/16, w/16, D)
+        if stride == 8:  # FPN-style: the stride-16 tokens upsampled onto the stride-8 stage
+            x = upsample2x(x) + nn.Dense(d, name="token_proj8")(stages[-2])
+        feats = x.reshape(b, n * fh * fw, d)
 
         bins = depth_bins(cfg.depth_bins, cfg.depth_min, cfg.depth_max)
         pts = frustum_points_ego(
-            intrinsics.astype(jnp.float32), cam_to_ego.astype(jnp.float32), (fh, fw), STRIDE, bins
+            intrinsics.astype(jnp.float32), cam_to_ego.astype(jnp.float32), (fh, fw), stride, bins
         )  # (B, N, fh, fw, Db, 3)
         pts = normalize_ego_points(pts, cfg.pos_z_range).reshape(b, n * fh * fw, -1)
+        ref = jnp.asarray(bev_reference_points()).reshape(-1, 2)  # (256, 2)
+        if cfg.position_frequencies:
+            pts = fourier_features(pts, cfg.position_frequencies)
+            ref = fourier_features(ref, cfg.position_frequencies)
         t_pos = MLP((4 * d, d), name="position_embedding")(pts)  # (B, T, D)
 
-        ref = jnp.asarray(bev_reference_points()).reshape(-1, 2)  # (256, 2)
         q_pos = MLP((d, d), name="query_embedding")(ref)[None]  # (1, Q, D)
         content = self.param("query_content", nn.initializers.normal(0.02), (ref.shape[0], d))
         q = jnp.broadcast_to(content[None], (b,) + content.shape)
@@ -119,4 +135,4 @@ class CameraEncoder(nn.Module):
             cfg.transformer_layers, cfg.num_heads, cfg.ffn_dim, cfg.dropout, name="decoder"
         )(q, q_pos, feats, t_pos, deterministic)
         latent = q.reshape(b, LATENT_SIZE, LATENT_SIZE, d)  # (B, 16, 16, D)
-        return latent, {"camera_features": x.reshape(b, n, fh, fw, -1)}
+        return latent, {"camera_features": x.reshape(b, n, fh, fw, d)}

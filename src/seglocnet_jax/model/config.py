@@ -38,6 +38,10 @@ class ModelConfig:
       depth_bins: frustum depths per feature pixel for the 3D position embedding.
       depth_min, depth_max: metres along the camera z axis, linear-increasing bins (PETR's LID).
       pos_z_range: ego z (m) mapped to [-1, 1] for the position embedding (x, y use +-32 m).
+      position_frequencies: 0: the position MLPs read the normalized coordinates; k > 0: their
+        sinusoidal encoding at k octaves (``camera.fourier_features``).
+      token_stride: 16: one camera token per stride-16 feature pixel; 8: per stride-8 pixel
+        (the stride-16 features upsampled onto the stride-8 stage, FPN-style).
       transformer_layers: DETR-style decoder layers (self-attn, cross-attn, FFN).
       num_heads: attention heads; ffn_dim: FFN hidden width; dropout: in attention and FFN.
       z_min, z_max: LiDAR voxel z range (m, ego frame); voxel_size: metres (x, y, z).
@@ -68,6 +72,8 @@ class ModelConfig:
     depth_min: float = 1.0
     depth_max: float = 45.0
     pos_z_range: tuple[float, float] = (-3.0, 5.0)
+    position_frequencies: int = 0
+    token_stride: int = 16
     transformer_layers: int = 2
     num_heads: int = 4
     ffn_dim: int = 128
@@ -125,6 +131,10 @@ class ModelConfig:
             bad("depth_min", f"in (0, depth_max={self.depth_max})")
         if len(self.pos_z_range) != 2 or not self.pos_z_range[0] < self.pos_z_range[1]:
             bad("pos_z_range", "(low, high) with low < high")
+        if self.token_stride not in (8, 16):
+            bad("token_stride", "8 or 16")
+        if self.position_frequencies < 0:
+            bad("position_frequencies", ">= 0")
         if not 0.0 <= self.dropout < 1.0:
             bad("dropout", "in [0, 1)")
         if not self.z_min < self.z_max:

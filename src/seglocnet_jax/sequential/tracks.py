@@ -120,7 +120,10 @@ def _volumes(step, params, place, bev, rows, owners, roads, temps, *, off_road, 
     the row's temperature ``temps[i]``; with ``roads`` (the rows' road channels, or None) plus
     the on-road prior. Rows of one frame with the same tile centre (the temperature
     candidates' windows often coincide) share one solver volume: it does not depend on T."""
-    key_of = [(o, np.asarray(r["tile_center"], np.float64).tobytes()) for o, r in zip(owners, rows)]
+    key_of = [
+        (o, np.asarray(r["tile_center"], np.float64).tobytes())
+        for o, r in zip(owners, rows, strict=True)
+    ]
     first = {}
     for i, key in enumerate(key_of):
         first.setdefault(key, i)
