@@ -70,6 +70,37 @@ def test_frustum_of_forward_camera_points_forward_in_ego():
     assert np.all(pts[2:, :, 2] < synthetic.CAMERA_HEIGHT)
 
 
+def test_geometric_attention_bias_matches_a_numpy_projection_of_each_pillar():
+    """Each query's bias for each token is -d^2/2 (floored), d the feature-pixel distance from
+    the token's centre to the nearest point of the query cell's pillar in that camera."""
+    rng = np.random.default_rng(1)
+    intr, cam = _random_rig(rng, 2)
+    cam[:, :3, 3] = [[1.0, 0.0, 1.5], [-1.0, 0.5, 1.5]]
+    bias = np.asarray(camera.geometric_attention_bias(intr[None], cam[None], (2, 4), 16))[0]
+    assert bias.shape == (256, 2 * 2 * 4)
+    cells = camera.bev_reference_points().reshape(-1, 2) * 32.0
+    uu, vv = np.meshgrid(np.arange(4) * 16 + 7.5, np.arange(2) * 16 + 7.5, indexing="xy")
+    for q in rng.choice(256, 12, replace=False):
+        for n in range(2):
+            ego_to_cam = np.linalg.inv(cam[n].astype(np.float64))
+            pts = np.array([[*cells[q], z] for z in camera.PILLAR_HEIGHTS])
+            pc = pts @ ego_to_cam[:3, :3].T + ego_to_cam[:3, 3]
+            uvw = pc @ intr[n].astype(np.float64).T
+            uv = uvw[:, :2] / np.maximum(uvw[:, 2:], 1e-3)
+            d2 = ((uv[:, None, None, 0] - uu) ** 2 + (uv[:, None, None, 1] - vv) ** 2) / 256
+            d2[pc[:, 2] <= 0.1] = np.inf
+            want = np.maximum(-0.5 * d2.min(axis=0), camera.BIAS_FLOOR).reshape(-1)
+            np.testing.assert_allclose(bias[q, n * 8 : (n + 1) * 8], want, rtol=1e-4, atol=1e-3)
+
+
+def test_stride_8_tokens_and_the_geometric_bias_keep_the_latent_shapes():
+    batch = synthetic.make_batch(0, 2, num_cams=3, image_hw=(32, 96), num_points=256)
+    cfg = preset("tiny", modality="camera", token_stride=8, geometric_attention=True)
+    (logits, aux), _ = _shapes(cfg, batch)
+    assert logits.shape == (2, 2, 128, 128) and aux["bev_latent"].shape == (2, 16, 16, 64)
+    assert aux["camera_latent"].shape == (2, 16, 16, 64)
+
+
 def test_depth_bins_increase_to_max_with_growing_spacing():
     d = camera.depth_bins(16, 1.0, 45.0)
     gaps = np.diff(d)

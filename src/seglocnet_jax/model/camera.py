@@ -78,6 +78,50 @@ def normalize_ego_points(points: jax.Array, z_range: tuple[float, float]) -> jax
     return points * scale + shift
 
 
+PILLAR_HEIGHTS = (0.0, 1.0, 2.0, 3.0)  # ego z (m, ground = 0) of the points of a query's pillar
+BIAS_FLOOR = -8.0  # attention logit bias of a token no pillar point projects near
+
+
+def geometric_attention_bias(
+    intrinsics: jax.Array, cam_to_ego: jax.Array, feat_hw: tuple[int, int], stride: int
+) -> jax.Array:
+    """Cross-attention logit bias of each BEV query for each camera token: the pillar of the
+    query's latent cell (its centre at :data:`PILLAR_HEIGHTS`) projected into every camera;
+    ``-d^2 / 2`` for the distance ``d`` (in feature pixels) from the nearest projected point to
+    the token's pixel centre, at least :data:`BIAS_FLOOR` (also behind the camera).
+
+    Args:
+      intrinsics: ``(B, N, 3, 3)``; cam_to_ego: ``(B, N, 4, 4)`` (OpenCV camera, ego frame).
+      feat_hw: feature map ``(h, w)``; stride: image pixels per feature pixel.
+
+    Returns:
+      ``(B, Q, N * h * w)`` float32, queries in :func:`bev_reference_points` order (row-major
+      16x16), tokens in ``(camera, row, column)`` order like the encoder's tokens.
+    """
+    cells = jnp.asarray(bev_reference_points().reshape(-1, 2) * PERCEPTION_RANGE)  # (Q, 2)
+    heights = jnp.asarray(PILLAR_HEIGHTS, jnp.float32)
+    pts = jnp.concatenate(
+        [
+            jnp.broadcast_to(cells[:, None], (cells.shape[0], len(PILLAR_HEIGHTS), 2)),
+            jnp.broadcast_to(heights[None, :, None], (cells.shape[0], len(PILLAR_HEIGHTS), 1)),
+        ],
+        axis=-1,
+    )  # (Q, H, 3) ego metres
+    ego_to_cam = jnp.linalg.inv(cam_to_ego)  # (B, N, 4, 4)
+    cam = jnp.einsum("bnij,qhj->bnqhi", ego_to_cam[..., :3, :3], pts)
+    cam = cam + ego_to_cam[..., None, None, :3, 3]  # (B, N, Q, H, 3)
+    z = cam[..., 2]
+    pix = jnp.einsum("bnij,bnqhj->bnqhi", intrinsics, cam)
+    uv = pix[..., :2] / jnp.maximum(z, 1e-3)[..., None]  # (B, N, Q, H, 2) image pixels
+    centres = jnp.asarray(feature_pixel_centers(*feat_hw, stride))  # (h, w, 2)
+    diff = (uv[..., None, None, :] - centres) / stride  # (B, N, Q, H, h, w, 2)
+    d2 = jnp.sum(diff * diff, axis=-1)
+    d2 = jnp.where((z > 0.1)[..., None, None], d2, jnp.inf)
+    bias = jnp.maximum(-0.5 * jnp.min(d2, axis=3), BIAS_FLOOR)  # (B, N, Q, h, w)
+    b, n, q = bias.shape[:3]
+    return jnp.moveaxis(bias, 2, 1).reshape(b, q, n * feat_hw[0] * feat_hw[1])
+
+
 def fourier_features(x: jax.Array, num_frequencies: int) -> jax.Array:
     """Sinusoidal encoding of coordinates in about [-1, 1] (PETR / NeRF style): each of the
     ``(..., F)`` values becomes ``sin, cos`` of ``pi * 2**k * x`` for ``k < num_frequencies``,
@@ -131,8 +175,13 @@ class CameraEncoder(nn.Module):
         content = self.param("query_content", nn.initializers.normal(0.02), (ref.shape[0], d))
         q = jnp.broadcast_to(content[None], (b,) + content.shape)
         q_pos = jnp.broadcast_to(q_pos, q.shape)
+        bias = None
+        if cfg.geometric_attention:
+            bias = geometric_attention_bias(
+                intrinsics.astype(jnp.float32), cam_to_ego.astype(jnp.float32), (fh, fw), stride
+            )  # (B, Q, T)
         q = TransformerDecoder(
             cfg.transformer_layers, cfg.num_heads, cfg.ffn_dim, cfg.dropout, name="decoder"
-        )(q, q_pos, feats, t_pos, deterministic)
+        )(q, q_pos, feats, t_pos, deterministic, bias)
         latent = q.reshape(b, LATENT_SIZE, LATENT_SIZE, d)  # (B, 16, 16, D)
         return latent, {"camera_features": x.reshape(b, n, fh, fw, d)}

@@ -42,6 +42,8 @@ class ModelConfig:
         sinusoidal encoding at k octaves (``camera.fourier_features``).
       token_stride: 16: one camera token per stride-16 feature pixel; 8: per stride-8 pixel
         (the stride-16 features upsampled onto the stride-8 stage, FPN-style).
+      geometric_attention: bias each BEV query's cross-attention towards the camera tokens its
+        cell's pillar projects onto (``camera.geometric_attention_bias``).
       transformer_layers: DETR-style decoder layers (self-attn, cross-attn, FFN).
       num_heads: attention heads; ffn_dim: FFN hidden width; dropout: in attention and FFN.
       z_min, z_max: LiDAR voxel z range (m, ego frame); voxel_size: metres (x, y, z).
@@ -74,6 +76,7 @@ class ModelConfig:
     pos_z_range: tuple[float, float] = (-3.0, 5.0)
     position_frequencies: int = 0
     token_stride: int = 16
+    geometric_attention: bool = False
     transformer_layers: int = 2
     num_heads: int = 4
     ffn_dim: int = 128

@@ -7,6 +7,8 @@ values (DETR / PETR).
 
 from __future__ import annotations
 
+import functools
+
 import flax.linen as nn
 import jax
 
@@ -19,14 +21,16 @@ class DecoderLayer(nn.Module):
     dropout: float = 0.0
 
     @nn.compact
-    def __call__(self, q, q_pos, tokens, t_pos, deterministic: bool = True):
-        # q, q_pos: (B, Q, D); tokens, t_pos: (B, T, D)
+    def __call__(self, q, q_pos, tokens, t_pos, deterministic: bool = True, bias=None):
+        # q, q_pos: (B, Q, D); tokens, t_pos: (B, T, D); bias: (B, Q, T) cross-attention logits
         attn = dict(
             num_heads=self.num_heads, dropout_rate=self.dropout, deterministic=deterministic
         )
         h = nn.LayerNorm()(q)
         q = q + nn.MultiHeadDotProductAttention(**attn, name="self_attn")(h + q_pos, h + q_pos, h)
         h = nn.LayerNorm()(q)
+        if bias is not None:  # the same bias for every head
+            attn["attention_fn"] = functools.partial(nn.dot_product_attention, bias=bias[:, None])
         q = q + nn.MultiHeadDotProductAttention(**attn, name="cross_attn")(
             h + q_pos, tokens + t_pos, tokens
         )
@@ -45,9 +49,11 @@ class TransformerDecoder(nn.Module):
     dropout: float = 0.0
 
     @nn.compact
-    def __call__(self, q, q_pos, tokens, t_pos, deterministic: bool = True) -> jax.Array:
+    def __call__(
+        self, q, q_pos, tokens, t_pos, deterministic: bool = True, bias=None
+    ) -> jax.Array:
         for _ in range(self.num_layers):
             q = DecoderLayer(self.num_heads, self.ffn_dim, self.dropout)(
-                q, q_pos, tokens, t_pos, deterministic
+                q, q_pos, tokens, t_pos, deterministic, bias
             )
         return nn.LayerNorm()(q)
