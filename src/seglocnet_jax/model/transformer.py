@@ -49,9 +49,7 @@ class TransformerDecoder(nn.Module):
     dropout: float = 0.0
 
     @nn.compact
-    def __call__(
-        self, q, q_pos, tokens, t_pos, deterministic: bool = True, bias=None
-    ) -> jax.Array:
+    def __call__(self, q, q_pos, tokens, t_pos, deterministic: bool = True, bias=None) -> jax.Array:
         for _ in range(self.num_layers):
             q = DecoderLayer(self.num_heads, self.ffn_dim, self.dropout)(
                 q, q_pos, tokens, t_pos, deterministic, bias
