@@ -116,6 +116,34 @@ def test_bev_reference_points_follow_the_bev_convention():
     np.testing.assert_allclose(ref.mean(axis=(0, 1)), 0.0, atol=1e-6)
 
 
+@pytest.mark.parametrize(
+    "shape,kernel,strides",
+    [((2, 16, 12, 7, 3), (3, 3, 3), (2, 2, 2)), ((1, 9, 10, 5, 4), (3, 3, 2), (2, 1, 1))],
+)  # fmt: skip
+def test_z_folded_3d_conv_is_flax_conv(shape, kernel, strides):
+    """The LiDAR stage's 3D convolution as one 2D convolution: same parameter (name, shape,
+    initial values), same output and kernel gradient as ``nn.Conv`` with "SAME" padding."""
+    import flax.linen as nn
+
+    from seglocnet_jax.model.layers import ZFoldedConv3D
+
+    x = jax.numpy.asarray(np.random.default_rng(0).normal(size=shape).astype(np.float32))
+    ref = nn.Conv(5, kernel, strides=strides, padding="SAME", use_bias=False)
+    ours = ZFoldedConv3D(5, kernel, strides)
+    params = ref.init(jax.random.key(1), x)
+    got = ours.init(jax.random.key(1), x)
+    assert jax.tree.map(np.shape, got) == jax.tree.map(np.shape, params)
+    np.testing.assert_array_equal(got["params"]["kernel"], params["params"]["kernel"])
+    np.testing.assert_allclose(ours.apply(params, x), ref.apply(params, x), atol=1e-5)
+
+    def grad(m):
+        return jax.jit(jax.grad(lambda p: jax.numpy.sum(jax.numpy.sin(m.apply(p, x)))))(params)
+
+    np.testing.assert_allclose(
+        grad(ours)["params"]["kernel"], grad(ref)["params"]["kernel"], rtol=1e-4, atol=1e-4
+    )
+
+
 def _numpy_voxelize(points, mask, grid, voxel_size, z_min):
     rows, cols, nz = grid
     count = np.zeros(grid)

@@ -11,6 +11,7 @@ from collections.abc import Sequence
 
 import flax.linen as nn
 import jax
+import jax.numpy as jnp
 
 
 def num_groups(channels: int, max_groups: int = 8) -> int:
@@ -28,11 +29,50 @@ class ConvNormAct(nn.Module):
 
     @nn.compact
     def __call__(self, x):
-        x = nn.Conv(
-            self.features, tuple(self.kernel), strides=self.strides, padding="SAME", use_bias=False
-        )(x)
+        if len(self.kernel) == 3:  # the same parameter ("Conv_0/kernel") as nn.Conv's
+            x = ZFoldedConv3D(self.features, tuple(self.kernel), self.strides, name="Conv_0")(x)
+        else:
+            x = nn.Conv(
+                self.features,
+                tuple(self.kernel),
+                strides=self.strides,
+                padding="SAME",
+                use_bias=False,
+            )(x)
         x = nn.GroupNorm(num_groups=num_groups(self.features))(x)
         return nn.relu(x) if self.act else x
+
+
+class ZFoldedConv3D(nn.Module):
+    """A 3D convolution (``"SAME"`` padding, no bias) computed as one 2D convolution: the
+    ``kz`` strided z-slices each output slice reads are stacked into channels and the z slices
+    into the batch. XLA's CPU 3D convolution is several times slower than its 2D one (tiny
+    LiDAR stage, batch 8: 0.34 s forward and 0.77 s with the kernel's gradient, against 0.05
+    and 0.11 s this way); the result is the 3D convolution's (tests: equal to ``nn.Conv``).
+    ``(B, X, Y, Z, Cin) -> (B, X', Y', Z', features)``."""
+
+    features: int
+    kernel: tuple[int, int, int]
+    strides: Sequence[int] | int = 1
+
+    @nn.compact
+    def __call__(self, x):
+        kx, ky, kz = self.kernel
+        sx, sy, sz = (self.strides,) * 3 if isinstance(self.strides, int) else self.strides
+        b, nx, ny, nz, cin = x.shape
+        w = self.param("kernel", nn.initializers.lecun_normal(), (kx, ky, kz, cin, self.features))
+        out_z = -(-nz // sz)  # XLA's "SAME": ceil(Z / stride), the padding split low-first
+        pad = max((out_z - 1) * sz + kz - nz, 0)
+        x = jnp.pad(x, ((0, 0), (0, 0), (0, 0), (pad // 2, pad - pad // 2), (0, 0)))
+        span = (out_z - 1) * sz + 1
+        x = jnp.concatenate([x[:, :, :, dz : dz + span : sz] for dz in range(kz)], axis=-1)
+        x = jnp.moveaxis(x, 3, 1).reshape(b * out_z, nx, ny, kz * cin)  # (B Z', X, Y, kz Cin)
+        w = w.reshape(kx, ky, kz * cin, self.features)  # channel dz * Cin + c, as stacked
+        y = jax.lax.conv_general_dilated(
+            x, w, (sx, sy), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+        )  # (B Z', X', Y', F)
+        y = y.reshape(b, out_z, *y.shape[1:])
+        return jnp.moveaxis(y, 1, 3)  # (B, X', Y', Z', F)
 
 
 class ResBlock(nn.Module):
