@@ -101,6 +101,16 @@ def test_stride_8_tokens_and_the_geometric_bias_keep_the_latent_shapes():
     assert aux["camera_latent"].shape == (2, 16, 16, 64)
 
 
+def test_a_32x32_query_grid_is_averaged_onto_the_latent_and_a_decoder_skip():
+    batch = synthetic.make_batch(0, 2, num_cams=3, image_hw=(32, 96), num_points=256)
+    cfg = preset("tiny", modality="fused", geometric_attention=True, camera_queries=32)
+    (logits, aux), variables = _shapes(cfg, batch)
+    assert logits.shape == (2, 2, 128, 128) and aux["camera_latent"].shape == (2, 16, 16, 64)
+    decoder = variables["params"]["decoder"]
+    assert {"camera_skip32", "skip32", "skip64"} <= set(decoder), sorted(decoder)
+    assert "camera_skip32" not in _shapes(preset("tiny"), batch)[1]["params"]["decoder"]
+
+
 def test_depth_bins_increase_to_max_with_growing_spacing():
     d = camera.depth_bins(16, 1.0, 45.0)
     gaps = np.diff(d)

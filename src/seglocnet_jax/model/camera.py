@@ -83,7 +83,11 @@ BIAS_FLOOR = -8.0  # attention logit bias of a token no pillar point projects ne
 
 
 def geometric_attention_bias(
-    intrinsics: jax.Array, cam_to_ego: jax.Array, feat_hw: tuple[int, int], stride: int
+    intrinsics: jax.Array,
+    cam_to_ego: jax.Array,
+    feat_hw: tuple[int, int],
+    stride: int,
+    size: int = LATENT_SIZE,
 ) -> jax.Array:
     """Cross-attention logit bias of each BEV query for each camera token: the pillar of the
     query's latent cell (its centre at :data:`PILLAR_HEIGHTS`) projected into every camera;
@@ -93,12 +97,13 @@ def geometric_attention_bias(
     Args:
       intrinsics: ``(B, N, 3, 3)``; cam_to_ego: ``(B, N, 4, 4)`` (OpenCV camera, ego frame).
       feat_hw: feature map ``(h, w)``; stride: image pixels per feature pixel.
+      size: the query grid is ``size x size`` cells over +-32 m.
 
     Returns:
       ``(B, Q, N * h * w)`` float32, queries in :func:`bev_reference_points` order (row-major
-      16x16), tokens in ``(camera, row, column)`` order like the encoder's tokens.
+      ``size x size``), tokens in ``(camera, row, column)`` order like the encoder's tokens.
     """
-    cells = jnp.asarray(bev_reference_points().reshape(-1, 2) * PERCEPTION_RANGE)  # (Q, 2)
+    cells = jnp.asarray(bev_reference_points(size).reshape(-1, 2) * PERCEPTION_RANGE)  # (Q, 2)
     heights = jnp.asarray(PILLAR_HEIGHTS, jnp.float32)
     pts = jnp.concatenate(
         [
@@ -131,11 +136,12 @@ def fourier_features(x: jax.Array, num_frequencies: int) -> jax.Array:
     return jnp.concatenate([jnp.sin(angles), jnp.cos(angles)], axis=-1)
 
 
-def bev_reference_points() -> np.ndarray:
-    """Ego ``(forward, left)`` of the 16x16 latent cell centres over +-32 m, normalized to
-    [-1, 1]: ``(16, 16, 2)``; row 0 is the far front, columns run to the right."""
-    cell = 2 * PERCEPTION_RANGE / LATENT_SIZE
-    return (geometry.bev_cell_centers_ego(LATENT_SIZE, cell) / PERCEPTION_RANGE).astype(np.float32)
+def bev_reference_points(size: int = LATENT_SIZE) -> np.ndarray:
+    """Ego ``(forward, left)`` of the ``size x size`` query cell centres over +-32 m (the 16x16
+    latent's by default), normalized to [-1, 1]: ``(size, size, 2)``; row 0 is the far front,
+    columns run to the right."""
+    cell = 2 * PERCEPTION_RANGE / size
+    return (geometry.bev_cell_centers_ego(size, cell) / PERCEPTION_RANGE).astype(np.float32)
 
 
 class CameraEncoder(nn.Module):
@@ -165,7 +171,8 @@ class CameraEncoder(nn.Module):
             intrinsics.astype(jnp.float32), cam_to_ego.astype(jnp.float32), (fh, fw), stride, bins
         )  # (B, N, fh, fw, Db, 3)
         pts = normalize_ego_points(pts, cfg.pos_z_range).reshape(b, n * fh * fw, -1)
-        ref = jnp.asarray(bev_reference_points()).reshape(-1, 2)  # (256, 2)
+        size = cfg.camera_queries
+        ref = jnp.asarray(bev_reference_points(size)).reshape(-1, 2)  # (Q, 2)
         if cfg.position_frequencies:
             pts = fourier_features(pts, cfg.position_frequencies)
             ref = fourier_features(ref, cfg.position_frequencies)
@@ -178,10 +185,27 @@ class CameraEncoder(nn.Module):
         bias = None
         if cfg.geometric_attention:
             bias = geometric_attention_bias(
-                intrinsics.astype(jnp.float32), cam_to_ego.astype(jnp.float32), (fh, fw), stride
+                intrinsics.astype(jnp.float32),
+                cam_to_ego.astype(jnp.float32),
+                (fh, fw),
+                stride,
+                size,
             )  # (B, Q, T)
         q = TransformerDecoder(
             cfg.transformer_layers, cfg.num_heads, cfg.ffn_dim, cfg.dropout, name="decoder"
         )(q, q_pos, feats, t_pos, deterministic, bias)
-        latent = q.reshape(b, LATENT_SIZE, LATENT_SIZE, d)  # (B, 16, 16, D)
-        return latent, {"camera_features": x.reshape(b, n, fh, fw, d)}
+        grid = q.reshape(b, size, size, d)  # (B, size, size, D)
+        aux = {"camera_features": x.reshape(b, n, fh, fw, d)}
+        if size == LATENT_SIZE:
+            return grid, aux
+        # A finer query grid: its cells averaged onto the 16x16 latent for the fusion, the grid
+        # itself a skip into the decoder at its size (like the LiDAR stages).
+        f = size // LATENT_SIZE
+        latent = grid.reshape(b, LATENT_SIZE, f, LATENT_SIZE, f, d).mean(axis=(2, 4))
+        aux["skip"] = grid
+        return latent, aux
+
+
+def camera_skip_key(size: int) -> str:
+    """Name of the camera's query grid at ``size x size`` among the decoder's skips."""
+    return f"camera_grid{size}"

@@ -44,6 +44,9 @@ class ModelConfig:
         (the stride-16 features upsampled onto the stride-8 stage, FPN-style).
       geometric_attention: bias each BEV query's cross-attention towards the camera tokens its
         cell's pillar projects onto (``camera.geometric_attention_bias``).
+      camera_queries: the BEV query grid is ``camera_queries x camera_queries`` over +-32 m:
+        16 (the latent's 4 m cells) or 32 (2 m cells, averaged onto the latent for the fusion
+        and fed to the decoder at 32x32 as a skip).
       transformer_layers: DETR-style decoder layers (self-attn, cross-attn, FFN).
       num_heads: attention heads; ffn_dim: FFN hidden width; dropout: in attention and FFN.
       z_min, z_max: LiDAR voxel z range (m, ego frame); voxel_size: metres (x, y, z).
@@ -77,6 +80,7 @@ class ModelConfig:
     position_frequencies: int = 0
     token_stride: int = 16
     geometric_attention: bool = False
+    camera_queries: int = 16
     transformer_layers: int = 2
     num_heads: int = 4
     ffn_dim: int = 128
@@ -136,6 +140,8 @@ class ModelConfig:
             bad("pos_z_range", "(low, high) with low < high")
         if self.token_stride not in (8, 16):
             bad("token_stride", "8 or 16")
+        if self.camera_queries not in (LATENT_SIZE, 2 * LATENT_SIZE):
+            bad("camera_queries", f"{LATENT_SIZE} or {2 * LATENT_SIZE}")
         if self.position_frequencies < 0:
             bad("position_frequencies", ">= 0")
         if not 0.0 <= self.dropout < 1.0:

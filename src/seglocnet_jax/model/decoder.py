@@ -13,6 +13,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from seglocnet_jax.model.camera import camera_skip_key
 from seglocnet_jax.model.config import ModelConfig
 from seglocnet_jax.model.layers import ConvNormAct, ResBlock, upsample2x
 from seglocnet_jax.model.lidar import skip_key
@@ -32,7 +33,10 @@ class Fusion(nn.Module):
 
 
 class SemanticDecoder(nn.Module):
-    """Latent ``(B, 16, 16, D)`` -> logits ``(B, 128, 128, C)`` and the last features."""
+    """Latent ``(B, 16, 16, D)`` -> logits ``(B, 128, 128, C)`` and the last features.
+
+    ``skips``: features by name (``lidar.skip_key(size)``, ``camera.camera_skip_key(size)``),
+    each concatenated at its size (the caller passes only those the config asks for)."""
 
     cfg: ModelConfig
 
@@ -43,10 +47,14 @@ class SemanticDecoder(nn.Module):
         for width in cfg.decoder_widths:
             x = upsample2x(x)
             size = x.shape[1]
-            skip = (skips or {}).get(skip_key(size)) if cfg.lidar_skips else None
+            skip = (skips or {}).get(skip_key(size))
             if skip is not None:
                 # Squeeze the z-folded LiDAR features first: the 3x3 conv stays cheap.
                 skip = ConvNormAct(width, (1, 1), name=f"skip{size}")(skip)
+                x = jnp.concatenate([x, skip], axis=-1)
+            skip = (skips or {}).get(camera_skip_key(size))
+            if skip is not None:
+                skip = ConvNormAct(width, (1, 1), name=f"camera_skip{size}")(skip)
                 x = jnp.concatenate([x, skip], axis=-1)
             # One 3x3 conv per level: the 64 and 128 px levels dominate the model's FLOPs.
             x = ConvNormAct(width, name=f"up{size}")(x)  # (B, size, size, width)

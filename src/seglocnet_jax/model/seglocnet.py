@@ -11,7 +11,7 @@ from __future__ import annotations
 import flax.linen as nn
 import jax.numpy as jnp
 
-from seglocnet_jax.model.camera import CameraEncoder
+from seglocnet_jax.model.camera import CameraEncoder, camera_skip_key
 from seglocnet_jax.model.config import ModelConfig
 from seglocnet_jax.model.decoder import Fusion, SemanticDecoder
 from seglocnet_jax.model.lidar import LidarEncoder
@@ -70,9 +70,15 @@ class SegLocNet(nn.Module):
             aux["camera_latent"] = cam
             latents.append(cam)
         if cfg.use_lidar:
-            lid, skips = LidarEncoder(cfg, name="lidar")(batch["points"], batch["points_mask"])
+            lid, lidar_skips = LidarEncoder(cfg, name="lidar")(
+                batch["points"], batch["points_mask"]
+            )
             aux["lidar_latent"] = lid
             latents.append(lid)
+            if cfg.lidar_skips:
+                skips.update(lidar_skips)
+        if cfg.use_camera and "skip" in cam_aux:
+            skips[camera_skip_key(cam_aux["skip"].shape[1])] = cam_aux["skip"]
         fused = Fusion(cfg.embed_dim, name="fusion")(latents)  # (B, 16, 16, D)
         logits, feats = SemanticDecoder(cfg, name="decoder")(fused, skips)
         aux["bev_latent"] = fused
