@@ -8,7 +8,7 @@ import pytest
 
 from data_synth import small_config
 from osm_synth import OsmFactory
-from seglocnet_jax import fileio, maps
+from seglocnet_jax import fileio, maps, sequential
 from seglocnet_jax.data import loader as ld
 from seglocnet_jax.data import manifest as mf
 from seglocnet_jax.data import variants as vr
@@ -167,6 +167,14 @@ def test_existing_dataset_gets_its_osm_class_rasters_without_rendering(tmp_path)
     for i in range(2):
         np.testing.assert_array_equal(batch["nm_tile"][i], stored.tile(*batch["tile_center"][i])[0])
     assert batch["nm_tile"].any()
+    # The sequential filter's split reads them the same way (its rows, its window tiles).
+    split = sequential.DriveSplit(ddir, "val", name, lcfg, nm_tiles=True)
+    try:
+        row = split.rows([0])[0]
+        assert set(split.nm_rasters) == {"helsinki"}
+        np.testing.assert_array_equal(row["nm_tile"], batch["nm_tile"][0])
+    finally:
+        split.close()
 
     # Another class table (a code change): the loader refuses the stale rasters, preparing
     # draws them again.
