@@ -194,6 +194,7 @@ class _SyntheticSplit:
 
     def __init__(self, raster, drives: list, sensors: dict):
         self.rasters = {raster.name: raster}
+        self.nm_rasters = None  # a seg model: no OSM class rasters
         self.drives = {int(r): (d, t) for d in drives for t, r in enumerate(d.records)}
         self.sensors = sensors
         self.pool = len(next(iter(sensors.values())))
@@ -255,7 +256,11 @@ def bench_drives(
     grid = geometry.RasterGrid(x_min=0.0, y_max=side * 0.5, height=side, width=side)
     raster = maps.CityRaster(mask.astype(np.uint8), grid, ("road", "building"), "bench-city")
     sensors = synthetic.make_batch(seed, 8, image_hw=(64, 160), num_points=32768)
-    sensors = {k: v for k, v in sensors.items() if k not in HOST_ONLY_KEYS + ("tile", "pose_tile")}
+    sensors = {
+        k: v
+        for k, v in sensors.items()
+        if k not in HOST_ONLY_KEYS + ("tile", "nm_tile", "pose_tile")
+    }
     model_cfg = preset("tiny")
     example = {k: v[:1] for k, v in sensors.items()}
     example["tile"] = np.zeros((1, 2, geometry.TILE_SIZE, geometry.TILE_SIZE), np.float32)

@@ -56,7 +56,9 @@ GT = ("eval.bev_source=gt",)
 JOBS = (
     Job("hd", "train"),
     Job("sd", "train", ("map=sd",)),
-    Job("nm", "train", ("model.variant=nm",)),
+    # The paper's NM: its neural map reads the multi-class OSM raster (maps.OSM_CLASSES), its
+    # segmentation term and the evaluation's priors use the SD map (10 m), like the SD row.
+    Job("nm", "train", ("map=sd", "model.variant=nm")),
     Job("gt_hd", "evaluate", GT),
     Job("gt_sd", "evaluate", (*GT, "map=sd")),
     Job("road", "train", ("map.channels=[road]",)),
@@ -234,8 +236,11 @@ def run(jobs, budget: str, extra=(), root=None, store: str | None = None) -> int
 
 
 def load(jobs, budget: str, store: str | None = None) -> dict:
-    """``{job name: {"results", "dir", "command", "commit"}}`` from the store (results None
-    when the job has no entry). An entry of another job or budget is an error naming it."""
+    """``{job name: {"results", "dir", "command", "commit", "stale"}}`` from the store (results
+    None when the job has no entry). An entry of another job or budget is an error naming it.
+    An entry whose command is not the job's as defined now (the job was redefined since, e.g.
+    NM moved to the SD map and the OSM class raster) is stale: its results are left out (None)
+    and ``stale`` holds the command it ran."""
     store = store or store_dir(budget)
     out = {}
     for job in jobs:
@@ -249,11 +254,15 @@ def load(jobs, budget: str, store: str | None = None) -> dict:
                     f"{path}: holds job {entry.get('job')!r} budget {entry.get('budget')!r}, "
                     f"expected job {job.name!r} budget {budget!r}"
                 )
+        results, stale = entry.get("results"), None
+        if results is not None and entry.get("command") != ran_command(job, budget, results):
+            results, stale = None, entry.get("command")
         out[job.name] = {
-            "results": entry.get("results"),
-            "dir": entry.get("run_dir"),
-            "command": entry.get("command", shown(command(job, budget))),
-            "commit": entry.get("commit"),
+            "results": results,
+            "dir": entry.get("run_dir") if stale is None else None,
+            "command": entry.get("command") if results else shown(command(job, budget)),
+            "commit": entry.get("commit") if stale is None else None,
+            "stale": stale,
         }
     return out
 

@@ -10,7 +10,7 @@ import orbax.checkpoint as ocp
 import pytest
 
 from apphelpers import TINY, app_tree
-from seglocnet_jax import evaluation
+from seglocnet_jax import evaluation, maps
 from seglocnet_jax.app import eval_run, train_run
 from seglocnet_jax.app.schema import build_experiment
 from seglocnet_jax.config_util import ConfigError
@@ -165,20 +165,27 @@ def _with(tree, **sections):
     return out
 
 
-def test_nm_is_evaluated_with_its_neural_map(data_root, tmp_path):
-    """model.variant=nm: training, validation and the evaluate app localize with the BEV
-    matching features against the neural map; changing only the neural-map parameters changes
-    the evaluated poses."""
+def test_nm_is_evaluated_with_its_neural_map(data_root, tmp_path, capsys, monkeypatch):
+    """model.variant=nm: the dataset gets its OSM class rasters, training, validation and the
+    evaluate app localize with the BEV matching features against the neural map of the OSM
+    class tile; changing only the neural-map parameters changes the evaluated poses; a
+    validation road IoU under the threshold is a printed warning, not an error."""
     cfg = build_experiment(
         _with(_tree(data_root, num_steps=2), model={"variant": "nm"}, eval={"num_figures": 0})
     )
     workdir = str(tmp_path / "nm")
+    monkeypatch.setattr(train_run, "NM_MIN_ROAD_IOU", 101.0)  # every IoU is "collapsed"
     results = train_run.train_and_evaluate(cfg, workdir)
     assert results["test"]["count"] == 4
+    assert "IoU_road" in results["test"] and "IoU_building" in results["test"]
+    out = capsys.readouterr().out
+    assert "warning: NM model at step 2: validation road IoU" in out and "< 101 %" in out
 
     mesh = step_lib.make_mesh(1)
     evaluator = train_run.Evaluator(cfg, os.path.join(data_root, "tiny"), mesh, str(tmp_path))
-    example = step_lib.device_batch(next(iter(evaluator.loader("test"))), mesh)
+    batch = next(iter(evaluator.loader("test")))
+    assert batch["nm_tile"].shape[1:] == (len(maps.OSM_CLASSES), 256, 256)
+    example = step_lib.device_batch(batch, mesh)
     state, _ = train_run.init_state(cfg, example)
     target = jax.device_get(state)
     restored, _ = ckpt_lib.restore_params(workdir, target)
@@ -193,6 +200,23 @@ def test_nm_is_evaluated_with_its_neural_map(data_root, tmp_path):
         "neural_map"
         not in train_run.init_state(build_experiment(_tree(data_root)), example)[0].params
     )
+
+
+def test_collapsed_nm_segmentation_is_a_warning_line(capsys):
+    nm = build_experiment(_with(_tree("/nowhere"), model={"variant": "nm"}))
+    seg = build_experiment(_tree("/nowhere"))
+    threshold = train_run.NM_MIN_ROAD_IOU
+    assert threshold == 5.0
+    msg = train_run.warn_collapsed_segmentation(nm, {"IoU_road": 0.1, "R@1m": 80.0}, 7)
+    assert msg.startswith("[seglocnet] warning: NM model at step 7: validation road IoU 0.1 %")
+    assert msg in capsys.readouterr().out
+    for cfg, val in [
+        (nm, {"IoU_road": threshold}),  # at the threshold: healthy
+        (nm, {"IoU_building": 0.0}),  # no road channel
+        (seg, {"IoU_road": 0.1}),  # a seg model's IoU is its own table's business
+    ]:
+        assert train_run.warn_collapsed_segmentation(cfg, val, 1) is None
+    assert capsys.readouterr().out == ""
 
 
 def test_validation_rounds_never_recompile(data_root, tmp_path):

@@ -159,6 +159,39 @@ def test_nuscenes_converts_to_records_and_rasters_the_loader_reads(tmp_path):
     assert rconv.convert(again, cfg) == ddir
 
 
+def test_real_dataset_gets_osm_class_rasters_through_its_alignment(tmp_path):
+    """An NM model's OSM class rasters are added to a converted dataset without reading a
+    sensor, drawn from the OSM extract through the city's fitted correction."""
+    reader, cfg = _nus_setup(tmp_path)
+    cfg = dataclasses.replace(cfg, num_workers=1)  # no worker processes to start: faster here
+    ddir = rconv.convert(reader, cfg)
+    assert "osm_classes" not in mf.read_manifest(ddir)
+    again = nu.NuScenesReader(reader.cfg)
+    again.load = lambda frame: (_ for _ in ()).throw(AssertionError("re-read " + frame.key))
+    ddir, _ = rconv.convert_for_training(again, cfg, maps.MapConfig(), osm_classes=True)
+    man = mf.read_manifest(ddir)
+    assert man["osm_classes"]["files"] == {
+        "boston-seaport": os.path.join("maps", "osm_classes", "boston-seaport.npz")
+    }
+    classes = maps.CityRaster.load(
+        os.path.join(ddir, man["osm_classes"]["files"]["boston-seaport"])
+    )
+    x0, y0, x1, y1 = fx.BUILDINGS[0]  # where the fixture put it: the correction was applied
+    row, col = classes.grid.world_to_pixel((x0 + x1) / 2, (y0 + y1) / 2)
+    assert classes.mask[:, int(row), int(col)].tolist() == [
+        int(c == "building") for c in maps.OSM_CLASS_NAMES
+    ]
+    batch = next(iter(make_loader(ddir, "val", "hd_road-building", 2, 0, False, nm_tiles=True)))
+    assert batch["nm_tile"].shape == (2, len(maps.OSM_CLASSES), 256, 256)
+    assert batch["nm_tile"][:, maps.OSM_CLASS_NAMES.index("road_minor")].any()
+    # Without an OSM extract there is no class raster: the error names the key to set.
+    road_only = dataclasses.replace(
+        cfg, name="no_osm", osm={}, map_variants=({"kind": "hd", "channels": ["road"]},)
+    )
+    with pytest.raises(RealDataError, match=r"neural map.*set dataset\.convert\.osm\.boston"):
+        rconv.convert(reader, road_only, osm_classes=True)
+
+
 def test_config_change_and_missing_osm_are_named(tmp_path):
     reader, cfg = _nus_setup(tmp_path)
     rconv.convert(reader, dataclasses.replace(cfg, map_variants=({"kind": "hd"},)), variants=False)

@@ -13,7 +13,7 @@ from seglocnet_jax import geometry
 from seglocnet_jax.data import loader as ld
 from seglocnet_jax.data import manifest as mf
 from seglocnet_jax.data import records
-from seglocnet_jax.data.schema import BATCH_KEYS, BATCH_METADATA_KEYS
+from seglocnet_jax.data.schema import BATCH_KEYS, BATCH_METADATA_KEYS, OPTIONAL_BATCH_KEYS
 from seglocnet_jax.data.simulated import prepare as pp
 from seglocnet_jax.training import step as step_lib
 
@@ -47,13 +47,15 @@ def test_batches_follow_the_schema(dataset):
     raster = dataset[1]["helsinki"]
     batch = next(iter(_loader(dataset)))
     dims = {"B": B, "P": P, "N": 2, "H": 8, "W": 12, "C": 2}
-    assert set(batch) == set(BATCH_KEYS)
+    assert set(batch) == set(BATCH_KEYS) - set(OPTIONAL_BATCH_KEYS)  # no nm_tile: not asked
     for key, (dtype, shape) in BATCH_KEYS.items():
+        if key in OPTIONAL_BATCH_KEYS:
+            continue
         want = tuple(dims.get(s, s) for s in shape)
         kind_ok = batch[key].dtype.kind == "U" if dtype == "str" else batch[key].dtype == dtype
         assert kind_ok and batch[key].shape == want, key
     on_devices = step_lib.device_batch(batch, step_lib.make_mesh(1))  # metadata stays on host
-    assert set(on_devices) == set(BATCH_KEYS) - set(BATCH_METADATA_KEYS)
+    assert set(on_devices) == set(BATCH_KEYS) - set(BATCH_METADATA_KEYS) - {"nm_tile"}
     for i in range(B):
         pose, centre = batch["pose"][i], batch["tile_center"][i]
         np.testing.assert_allclose(
@@ -67,6 +69,30 @@ def test_batches_follow_the_schema(dataset):
         n = batch["points_mask"][i].sum()
         assert not batch["points"][i][n:].any()
     assert batch["valid"].all()
+
+
+def test_nm_tiles_are_cut_around_the_same_prior_only_when_asked(dataset):
+    ddir, rasters = dataset
+    classes = random_raster(1, size_m=1300.0)  # a stand-in for the OSM class rasters
+    classes.mask = np.concatenate([classes.mask] * 4 + [classes.mask[:1]])  # 9 channels
+    nm = {"helsinki": classes, "kouvola": classes}
+    for train in (True, False):
+        plain = next(iter(_loader(dataset, train=train)))
+        loader = ld.make_loader(
+            ddir, "train", None, B, 0, train, config=CFG, rasters=rasters, nm_rasters=nm
+        )
+        batch = next(iter(loader))
+        assert "nm_tile" not in plain
+        assert batch["nm_tile"].shape == (B, 9, 256, 256) and batch["nm_tile"].dtype == np.uint8
+        for key in ("tile", "pose", "tile_center", "bev_gt"):  # the same rows and priors
+            np.testing.assert_array_equal(batch[key], plain[key])
+        for i in range(B):
+            np.testing.assert_array_equal(
+                batch["nm_tile"][i], classes.tile(*batch["tile_center"][i])[0]
+            )
+    # Stored ones (nm_tiles=True) must have been prepared: the error names the remedy.
+    with pytest.raises(ValueError, match="OSM class rasters are not prepared.*model.variant=nm"):
+        ld.make_loader(ddir, "train", None, B, 0, True, config=CFG, rasters=rasters, nm_tiles=True)
 
 
 def test_same_seed_same_batches_other_seed_other_priors(dataset):

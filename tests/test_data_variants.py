@@ -8,7 +8,7 @@ import pytest
 
 from data_synth import small_config
 from osm_synth import OsmFactory
-from seglocnet_jax import fileio, maps
+from seglocnet_jax import fileio, maps, sequential
 from seglocnet_jax.data import loader as ld
 from seglocnet_jax.data import manifest as mf
 from seglocnet_jax.data import variants as vr
@@ -138,3 +138,52 @@ def test_stored_variant_with_another_config_is_refused(tmp_path):
     fileio.write_json_atomic(mf.manifest_path(ddir), man)
     with pytest.raises(vr.VariantError, match="was stored with"):
         vr.ensure_variant(ddir, maps.MapConfig("sd"))
+
+
+def test_existing_dataset_gets_its_osm_class_rasters_without_rendering(tmp_path):
+    """An NM model's map input is added to a prepared dataset (no sensor rendered), recorded in
+    the manifest with its class table, cut by the loader beside the tile, and drawn again when
+    the table changes."""
+    cfg = small_config(tmp_path, test_city=None, map_variants=({"kind": "sd"},))
+    ddir = pp.prepare(cfg, OsmFactory())
+    assert vr.OSM_CLASSES not in mf.read_manifest(ddir)
+    assert not pp.dataset_ready(ddir, [maps.MapConfig("sd")], osm_classes=True)
+    again = OsmFactory()
+    ddir2, name = pp.prepare_for_training(cfg, maps.MapConfig("sd"), again, osm_classes=True)
+    assert ddir2 == ddir and again.calls == 0 and again.called == []  # OSM only: no world
+    man = mf.read_manifest(ddir)
+    assert man[vr.OSM_CLASSES]["config"] == maps.osm_classes.spec()
+    assert man[vr.OSM_CLASSES]["files"] == {
+        "helsinki": os.path.join("maps", "osm_classes", "helsinki.npz")
+    }
+    assert pp.dataset_ready(ddir, [maps.MapConfig("sd")], osm_classes=True)
+    stored = vr.load_osm_classes(ddir, ["helsinki"])["helsinki"]
+    want = maps.rasterize_osm_classes(maps.load_city("helsinki"))
+    np.testing.assert_array_equal(stored.mask, want.mask)
+    assert stored.channels == maps.OSM_CLASS_NAMES
+
+    lcfg = ld.LoaderConfig(max_points=8, num_threads=0)
+    batch = next(iter(ld.make_loader(ddir, "val", name, 2, 0, False, config=lcfg, nm_tiles=True)))
+    for i in range(2):
+        np.testing.assert_array_equal(batch["nm_tile"][i], stored.tile(*batch["tile_center"][i])[0])
+    assert batch["nm_tile"].any()
+    # The sequential filter's split reads them the same way (its rows, its window tiles).
+    split = sequential.DriveSplit(ddir, "val", name, lcfg, nm_tiles=True)
+    try:
+        row = split.rows([0])[0]
+        assert set(split.nm_rasters) == {"helsinki"}
+        np.testing.assert_array_equal(row["nm_tile"], batch["nm_tile"][0])
+    finally:
+        split.close()
+
+    # Another class table (a code change): the loader refuses the stale rasters, preparing
+    # draws them again.
+    man[vr.OSM_CLASSES]["config"]["channels"] = ["road", "building"]
+    fileio.write_json_atomic(mf.manifest_path(ddir), man)
+    with pytest.raises(vr.VariantError, match="another class table"):
+        vr.load_osm_classes(ddir, ["helsinki"])
+    os.remove(vr.osm_classes_path(ddir, "helsinki"))
+    pp.prepare_for_training(cfg, maps.MapConfig("sd"), OsmFactory(), osm_classes=True)
+    np.testing.assert_array_equal(
+        vr.load_osm_classes(ddir, ["helsinki"])["helsinki"].mask, want.mask
+    )

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import yaml
 
-from seglocnet_jax import geometry
+from seglocnet_jax import geometry, maps
 from seglocnet_jax.config_util import ConfigError, from_dict
-from seglocnet_jax.model import api, camera, lidar, synthetic
+from seglocnet_jax.model import api, camera, lidar, neural_map, synthetic
 from seglocnet_jax.model.config import ModelConfig, preset
 
 CONF_DIR = os.path.join(os.path.dirname(__file__), "..", "conf", "model")
@@ -233,6 +233,38 @@ def test_nm_variant_shapes_and_channels_follow_config():
     assert aux["bev_match"].shape == (1, 4, 128, 128)
     assert aux["map_match"].shape == (1, 4, 256, 256)
     assert aux["match_scale"].shape == ()
+
+
+def test_nm_reads_the_osm_class_tile_and_names_it_when_missing():
+    """SegLocNet-NM's map side reads ``nm_tile`` (the OSM class raster's tile), not the binary
+    ``tile``; a batch without it is refused naming the key (and where it comes from)."""
+    batch = synthetic.make_batch(0, 1, num_cams=2, image_hw=(32, 64), num_points=128)
+    assert batch["nm_tile"].shape == (1, len(maps.OSM_CLASSES), 256, 256)
+    assert batch["nm_tile"].dtype == np.uint8
+    assert synthetic.NUM_OSM_CLASSES == len(maps.OSM_CLASSES)
+    names = maps.OSM_CLASS_NAMES
+    assert (names[synthetic.OSM_ROAD], names[synthetic.OSM_BUILDING]) == ("road_minor", "building")
+    cfg = preset("tiny", variant="nm", nm_dim=4, nm_widths=(4, 8))
+    assert "nm_tile" in api.required_keys(cfg) and "tile" not in api.required_keys(cfg)
+    without = {k: v for k, v in batch.items() if k != "nm_tile"}
+    with pytest.raises(KeyError, match=r"\['nm_tile'\].*make_loader\(nm_tiles=True\)"):
+        api.init(jax.random.key(0), without, cfg)
+    # random parameters of the right shapes (compiling the initializers would take seconds)
+    shapes = jax.eval_shape(
+        neural_map.NeuralMapEncoder(cfg).init, jax.random.key(1), batch["nm_tile"]
+    )["params"]
+    rng = np.random.default_rng(0)
+    params = {"neural_map": jax.tree.map(lambda x: rng.normal(0, 0.3, x.shape), shapes)}
+    with pytest.raises(KeyError, match="nm_tile"):
+        api.encode_map(params, without, cfg)
+    encode = jax.jit(lambda p, tiles: api.encode_map(p, tiles, cfg))
+    maps_of = {k: batch[k] for k in ("tile", "nm_tile")}
+    base = np.asarray(encode(params, maps_of))
+    assert base.shape == (1, 4, 256, 256)
+    other_tile = dict(maps_of, tile=1.0 - batch["tile"])
+    np.testing.assert_array_equal(encode(params, other_tile), base)
+    other_classes = dict(maps_of, nm_tile=batch["nm_tile"][:, ::-1].copy())
+    assert not np.allclose(encode(params, other_classes), base)
 
 
 def test_missing_modality_is_configuration_not_a_crash():

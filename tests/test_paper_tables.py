@@ -166,3 +166,68 @@ def test_findings_weigh_the_deciding_gap_against_the_seed_range():
     data.update(camera=row(8.0), lidar=row(60.0))  # the fused row at seed 0 is hd
     modality = [f for f in mod.findings(data) if f[0].startswith("Modality")]
     assert [m[1:] for m in modality] == [(False, "54.0 / 8.0 / 60.0", "gap 6.0 > seed range 5.0")]
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location("paper_tables", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("paper_tables", mod)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_nm_job_is_the_papers_nm_measured_beside_hd_and_sd():
+    """The NM row trains on the SD map (paper: road width 10) with the neural map over the OSM
+    class raster, and is evaluated on the same splits as HD and SD (test and the unseen
+    city), single-frame like every row but HD."""
+    from hydra import compose, initialize_config_dir
+
+    from seglocnet_jax.app import hydra_glue
+    from seglocnet_jax.app.datasets import reads_osm_classes
+    from seglocnet_jax.app.schema import build_experiment
+
+    mod = _module()
+    overrides = {n: mod.job_overrides(mod.BY_NAME[n], "cpu") for n in ("hd", "sd", "nm")}
+    assert overrides["nm"] == ["map=sd", "model.variant=nm", "+budget=cpu", "eval.mode=single"]
+    hydra_glue.register_resolvers()
+    exps = {}
+    with initialize_config_dir(config_dir=hydra_glue.conf_dir(), version_base="1.3"):
+        for name, ovr in overrides.items():
+            exps[name] = build_experiment(hydra_glue.to_tree(compose("config", ovr)))
+    nm, sd = exps["nm"], exps["sd"]
+    assert (nm.map.kind, nm.map.road_width, nm.model.variant) == ("sd", 10.0, "nm")
+    assert nm.map == sd.map and reads_osm_classes(nm) and not reads_osm_classes(sd)
+    assert "kouvola" in nm.eval.splits and nm.eval.splits == sd.eval.splits
+    assert nm.eval.splits == exps["hd"].eval.splits
+
+
+def test_nm_row_shows_its_iou_and_a_redefined_job_is_not_reported(tmp_path):
+    mod = _module()
+    import paper_report  # the sibling module paper_tables put on the path
+
+    from seglocnet_jax.app import train_run
+
+    assert paper_report.NM_MIN_ROAD_IOU == train_run.NM_MIN_ROAD_IOU  # one threshold
+    old = "python -m seglocnet_jax.train model.variant=nm +budget=cpu"  # the HD-map NM
+    res = {"splits": {"test": {"R@1m": 82.3, "IoU_road": 0.1}}, "config": {"eval": {}}}
+    (tmp_path / "nm.json").write_text(
+        json.dumps({"job": "nm", "budget": "cpu", "command": old, "results": res})
+    )
+    data = mod.load(mod.JOBS, "cpu", str(tmp_path))
+    assert data["nm"]["results"] is None and data["nm"]["stale"] == old
+    assert data["nm"]["command"] == (
+        "python -m seglocnet_jax.train map=sd model.variant=nm +budget=cpu eval.mode=single"
+    )
+    text = paper_report._row_table("I", [("NM", "nm")], data, "test")
+    assert "| NM | not run |" in text
+
+    res["config"]["eval"]["mode"] = "single"
+    data["nm"] = {"results": res, "command": data["nm"]["command"], "commit": None}
+    row = paper_report._row_table("I", [("NM", "nm")], data, "test").splitlines()[4]
+    cells = [c.strip() for c in row.split("|")]
+    assert cells[2] == "82.3" and cells[12] == "0.1"  # R@1m ... IoU_road beside the recalls
+    collapse = [f for f in mod.findings(data) if f[0].startswith("NM: its segmentation")]
+    assert collapse == [(collapse[0][0], None, "not all rows measured", "–")]  # no Kouvola
+    res["splits"]["kouvola"] = {"R@1m": 70.0, "IoU_road": 12.0}
+    collapse = [f for f in mod.findings(data) if f[0].startswith("NM: its segmentation")]
+    assert collapse[0][1:3] == (False, "0.1 / 12.0")

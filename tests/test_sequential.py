@@ -80,6 +80,7 @@ class _FakeSplit:
     """A drive split in memory: the rows a DriveSplit gives, over one raster."""
 
     name = "fake"
+    nm_rasters = None  # a seg model's split: no OSM class rasters
 
     def __init__(self, raster, drive):
         self.rasters = {drive.city: raster}
@@ -520,8 +521,9 @@ class _SensorSplit:
 
     name = "sensors"
 
-    def __init__(self, raster, drives, sensors):
+    def __init__(self, raster, drives, sensors, nm_raster=None):
         self.rasters = {raster.name: raster}
+        self.nm_rasters = None if nm_raster is None else {raster.name: nm_raster}
         self.frames = {int(r): (d, t) for d in drives for t, r in enumerate(d.records)}
         self.sensors = sensors
 
@@ -539,6 +541,8 @@ class _SensorSplit:
                 pose=pose,
                 frame_index=np.int64(t),
             )
+            if self.nm_rasters is not None:
+                row["nm_tile"] = self.nm_rasters[drive.city].tile(*centre)[0]
             out.append(row)
         return out
 
@@ -573,9 +577,17 @@ class _PerTileStep:
         return self.step(params, {**frame, "tile": batch["tile"]}, figures=figures, volume=volume)
 
 
-def _network_drives(frames=4):
+def _class_raster(seed=0):
+    """A random 9-channel stand-in for the OSM class raster, on another grid than
+    :func:`_raster`'s (larger; corners on the same 0.5 m lattice)."""
+    mask = (np.random.default_rng(seed).random((9, 760, 640)) > 0.7).astype(np.uint8)
+    grid = geometry.RasterGrid(x_min=-143.5, y_max=471.0, height=760, width=640)
+    return maps.CityRaster(mask, grid, maps.OSM_CLASS_NAMES, "town")
+
+
+def _network_drives(frames=4, nm=False):
     """Two drives over one raster with a tiny network's inputs: the split, its drives, the
-    network's parameters and the preset."""
+    network's parameters and the preset; ``nm``: the rows also carry ``nm_tile``."""
     from seglocnet_jax.model import api, synthetic
     from seglocnet_jax.model.config import preset
 
@@ -589,7 +601,9 @@ def _network_drives(frames=4):
         drives.append(drive)
     sensors = synthetic.make_batch(0, 4, num_cams=2, image_hw=(32, 64), num_points=2048)
     keys = ("images", "intrinsics", "cam_to_ego", "points", "points_mask", "bev_gt")
-    split = _SensorSplit(raster, drives, {k: sensors[k] for k in keys})
+    split = _SensorSplit(
+        raster, drives, {k: sensors[k] for k in keys}, _class_raster() if nm else None
+    )
     example = {k: np.asarray(v)[:1] for k, v in _stack_rows(split.rows([0])).items()}
     return split, drives, example, api, preset
 
@@ -634,7 +648,7 @@ def test_nm_matches_the_frames_bev_features_against_each_tiles_neural_map():
     """SegLocNet-NM through the split step: the BEV matching features of a frame (network once)
     against the neural map of other tiles (the map side per tile) give the volumes of the whole
     network run on the frame's row with each tile."""
-    split, drives, example, api, preset = _network_drives(frames=1)
+    split, drives, example, api, preset = _network_drives(frames=1, nm=True)
     model_cfg = dataclasses.replace(preset("tiny"), variant="nm")
     params = api.init(jax.random.key(0), example, model_cfg)
     # the initial projections are zero (all-zero features): bend every parameter
@@ -643,13 +657,30 @@ def test_nm_matches_the_frames_bev_features_against_each_tiles_neural_map():
     )
     step = evaluation.make_localize_step(model_cfg, solver.SolverConfig(num_rotations=K))
     frame = _place(_stack_rows(split.rows([0, 1])))  # drive 0's and drive 1's first frames
-    tiles = {"tile": frame["tile"][::-1]}  # each frame against the other's tile
+    tiles = {k: frame[k][::-1] for k in ("tile", "nm_tile")}  # against the other frame's tile
+    assert step.reads_nm_tile
     rows = np.array([1, 0])
     got = step.solve(params, step.network(params, frame), tiles, rows, volume=True)
     want = step(params, {**{k: v[rows] for k, v in frame.items()}, **tiles}, volume=True)
     np.testing.assert_array_equal(got["volume"], want["volume"])
     np.testing.assert_array_equal(got["pose_tile"], want["pose_tile"])
     assert not np.array_equal(got["volume"][0], got["volume"][1])
+
+
+def test_nm_window_rows_carry_the_class_tile_at_the_window_centre():
+    """The filter's window tiles for an NM model: beside the map tile, the OSM class raster's
+    tile around the same centre (another grid, the same lattice); a seg model's rows have none."""
+    raster, classes = _raster(2), _class_raster(3)
+    cfg = sequential.tracker_config(sequential.EvalConfig(), K, raster.channels)
+    belief = drive_filter.start_belief(raster, np.array([31.3, 52.8]), cfg)
+    tile, centre = drive_filter.filter_tile(raster, belief, cfg)
+    frame = {"pose": np.array([30.0, 50.0, 0.3]), "frame_index": np.int64(0), "city": "town"}
+    row = tracks._window_row(frame, tile, centre, {"town": classes})
+    want, at = classes.tile(*centre)
+    assert at == tuple(centre) and row["nm_tile"].shape == (9, 256, 256)
+    np.testing.assert_array_equal(row["nm_tile"], want)
+    np.testing.assert_array_equal(row["tile"], raster.tile(*centre)[0])
+    assert "nm_tile" not in tracks._window_row(frame, tile, centre)
 
 
 def _stack_rows(rows):

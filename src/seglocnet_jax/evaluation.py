@@ -11,7 +11,8 @@ benchmarks. What it matches depends on the variant:
 
 - ``seg`` models: the BEV logits ``(B, C, 128, 128)`` against the ``{0, 1}`` map tile.
 - ``nm`` models (SegLocNet-NM): the BEV matching features against the neural map the network
-  computes from the tile (``aux["bev_match"]`` vs ``aux["map_match"]``).
+  computes from the OSM class tile ``batch["nm_tile"]`` (``aux["bev_match"]`` vs
+  ``aux["map_match"]``).
 - ``bev_source="gt"`` (the GT-segmentation upper bound): the GT BEV labels as +-1 logits
   (:func:`solver.labels_to_logits`) against the tile; no network, no parameters.
 
@@ -62,13 +63,14 @@ def _network(params, batch, *, model_cfg: ModelConfig, bev_source: str, key) -> 
 
 def _solve(params, bev, batch, rows, *, model_cfg, solver_cfg, bev_source, figures, key):
     """The tile's side: ``bev`` (:func:`_network`, rows ``rows`` of it when given: a tile per
-    row of ``batch``) against ``batch["tile"]`` (NM: the neural map of the tile) -> decoded
-    pose; without ``rows`` also the IoU counts of the BEV (and the figure maps)."""
+    row of ``batch``) against ``batch["tile"]`` (NM: the neural map of ``batch["nm_tile"]``)
+    -> decoded pose; without ``rows`` also the IoU counts of the BEV (and the figure maps)."""
     TRACE_COUNTS[key] = TRACE_COUNTS.get(key, 0) + 1  # runs only while tracing
     template = bev["template"] if rows is None else bev["template"][rows]  # (B, C', 128, 128)
-    tile = batch["tile"].astype(jnp.float32)  # (B, C, 256, 256)
     if model_cfg.variant == "nm" and bev_source == "model":
-        tile = model_api.encode_map(params, tile, model_cfg)  # (B, D', 256, 256)
+        tile = model_api.encode_map(params, batch, model_cfg)  # (B, D', 256, 256)
+    else:
+        tile = batch["tile"].astype(jnp.float32)  # (B, C, 256, 256)
     out = solver.localize(template, tile, solver_cfg, return_volume=bool(figures))
     result = {"pose_tile": out["pose_tile"], "score": out["score"]}  # (B, 3), (B,)
     logits = bev.get("logits")
@@ -95,6 +97,9 @@ class LocalizeStep:
 
     def __init__(self, model_cfg: ModelConfig, solver_cfg: solver.SolverConfig, bev_source: str):
         base = (model_cfg, solver_cfg, bev_source)
+        # The tiles' batch key the map side reads besides ``tile``: an NM network's neural map
+        # reads the OSM class tile (the loaders yield it only when asked).
+        self.reads_nm_tile = model_cfg.variant == "nm" and bev_source == "model"
         self._network = jax.jit(
             functools.partial(
                 _network, model_cfg=model_cfg, bev_source=bev_source, key=base + ("network",)

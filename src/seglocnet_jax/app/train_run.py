@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from seglocnet_jax import evaluation, sequential
 from seglocnet_jax.app import evalset, runs
-from seglocnet_jax.app.datasets import prepare_dataset
+from seglocnet_jax.app.datasets import prepare_dataset, reads_osm_classes
 from seglocnet_jax.app.schema import ExperimentConfig
 from seglocnet_jax.data import loader as loader_lib
 from seglocnet_jax.data import manifest as manifest_lib
@@ -26,6 +26,26 @@ from seglocnet_jax.training import step as step_lib
 from seglocnet_jax.training.logger import MetricsLogger
 
 progress = runs.progress
+
+# An NM model's validation road IoU (percent) below this is reported as a collapsed
+# segmentation term (a warning line, not an error: its matching features may still localize,
+# but its BEV no longer segments, unlike the paper's NM trained with both terms).
+NM_MIN_ROAD_IOU = 5.0
+
+
+def warn_collapsed_segmentation(cfg: ExperimentConfig, val: dict, step: int) -> str | None:
+    """Prints (and returns) the warning of an NM model whose validation ``IoU_road`` is below
+    :data:`NM_MIN_ROAD_IOU`; None otherwise (a seg model, no road channel, a healthy IoU)."""
+    iou = val.get("IoU_road")
+    if cfg.model.variant != "nm" or iou is None or iou >= NM_MIN_ROAD_IOU:
+        return None
+    msg = (
+        f"[seglocnet] warning: NM model at step {step}: validation road IoU {iou:.1f} % < "
+        f"{NM_MIN_ROAD_IOU:g} %: its segmentation term has collapsed (the BEV no longer "
+        "segments roads; the pose loss alone drives it). Consider a larger model.seg_weight"
+    )
+    print(msg, flush=True)
+    return msg
 
 
 def init_state(cfg: ExperimentConfig, example_batch: dict):
@@ -56,6 +76,7 @@ class Evaluator:
                 self.cfg.train.seed,
                 train=False,
                 config=self.cfg.loader,
+                nm_tiles=self.step.reads_nm_tile,
             )
         return self._loaders[split]
 
@@ -186,6 +207,7 @@ def _train(cfg: ExperimentConfig, run: runs.RunDir) -> dict:
         train=True,
         config=cfg.loader,
         shard_options=loader_lib.ShardOptions(*step_lib.batch_shard(mesh)),
+        nm_tiles=reads_osm_classes(cfg),
     )
     example = next(iter(train_loader))
     state, optimizer = init_state(cfg, step_lib.device_batch(example, mesh))
@@ -243,6 +265,7 @@ def _train(cfg: ExperimentConfig, run: runs.RunDir) -> dict:
             val = evaluate(state.params, ["val"], max_batches=cfg.train.val_batches, tag=tag)
             val = val["val"]
             logger.write(step, "val", val)
+            warn_collapsed_segmentation(cfg, val, step)
         if (
             step % cfg.train.checkpoint.every_steps == 0
             or val is not None

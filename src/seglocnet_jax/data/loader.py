@@ -2,7 +2,8 @@
 
 Training: globally shuffled (reshuffled every epoch), a fresh prior per epoch and record drawn
 from ``np.random.Generator`` that grain seeds with ``(seed, global index)``, the map tile cut on
-the fly around the snapped prior and the GT BEV cut at the GT pose from the cached city raster.
+the fly around the snapped prior and the GT BEV cut at the GT pose from the cached city raster
+(for an NM model also ``nm_tile``, the same tile of the city's OSM class raster).
 Evaluation: file order, the stored seeded priors, the last batch padded by repeating the last
 record (``valid`` marks real rows) so that every batch has the same shape.
 
@@ -141,12 +142,16 @@ class FrameTransform:
     ``rasters`` maps city -> an object with ``tile(x, y) -> ((C, 256, 256), (cx, cy))`` and
     ``cut_bev(pose) -> (C, 128, 128)`` (``maps.CityRaster``). With ``train=True`` the prior is
     drawn from the generator grain passes; otherwise the record's stored prior is used.
+    ``nm_rasters`` (city -> the OSM class raster, for an NM model; None: no ``nm_tile``) adds
+    ``nm_tile``, the tile of that raster around the same prior (the same centre: both grids'
+    corners lie on the resolution's lattice).
     """
 
-    def __init__(self, rasters: dict, max_points: int, train: bool):
+    def __init__(self, rasters: dict, max_points: int, train: bool, nm_rasters=None):
         self.rasters = rasters
         self.max_points = max_points
         self.train = train
+        self.nm_rasters = nm_rasters
 
     def __call__(self, sample: dict, rng: np.random.Generator | None = None) -> dict:
         city = sample["city"]
@@ -165,6 +170,10 @@ class FrameTransform:
         tile, (cx, cy) = raster.tile(float(prior[0]), float(prior[1]))
         bev = raster.cut_bev(pose)
         points, mask = fit_points(sample["lidar"], self.max_points)
+        extra = {}
+        if self.nm_rasters is not None:
+            where = f"record {sample['sample_id']!r}"
+            extra["nm_tile"] = nm_tile(self.nm_rasters, city, cx, cy, where)
         return {
             "images": sample["images"],  # (N, H, W, 3) uint8
             "intrinsics": sample["intrinsics"],  # (N, 3, 3)
@@ -182,7 +191,25 @@ class FrameTransform:
             "sequence_id": sample["sequence_id"],
             "frame_index": np.int64(sample["frame_index"]),
             "timestamp": np.float64(sample["timestamp"]),  # seconds
+            **extra,
         }
+
+
+def nm_tile(nm_rasters: dict, city: str, cx: float, cy: float, where: str = "tile") -> np.ndarray:
+    """The ``(C_osm, 256, 256)`` uint8 tile of ``city``'s OSM class raster centred on the map
+    tile's centre ``(cx, cy)`` (world m, a pixel corner); an error names a missing city or a
+    raster whose grid is off the lattice (the tiles would not be the same place)."""
+    if city not in nm_rasters:
+        raise RecordError(
+            f"{where}: no OSM class raster for city {city!r} (have {sorted(nm_rasters)})"
+        )
+    tile, centre = nm_rasters[city].tile(cx, cy)
+    if max(abs(centre[0] - cx), abs(centre[1] - cy)) > 1e-6:
+        raise RecordError(
+            f"{where}: the OSM class raster of {city!r} puts the tile at {centre}, the map at "
+            f"({cx}, {cy}): its grid is not on the map's pixel lattice"
+        )
+    return tile
 
 
 class Loader:
@@ -222,6 +249,13 @@ def load_rasters(dataset_dir: str | os.PathLike, map_variant: str, cities) -> di
     return load_variant(dataset_dir, map_variant, cities)
 
 
+def load_osm_classes(dataset_dir: str | os.PathLike, cities) -> dict:
+    """The cities' stored OSM class rasters (``maps/osm_classes/<city>.npz``)."""
+    from seglocnet_jax.data import variants  # maps dependency stays lazy
+
+    return variants.load_osm_classes(dataset_dir, cities)
+
+
 def make_loader(
     dataset_dir: str | os.PathLike,
     split: str,
@@ -233,6 +267,8 @@ def make_loader(
     config: LoaderConfig | None = None,
     rasters: dict | None = None,
     shard_options: ShardOptions | None = None,
+    nm_tiles: bool = False,
+    nm_rasters: dict | None = None,
 ) -> Loader:
     """The loader of one split of a prepared dataset.
 
@@ -250,6 +286,9 @@ def make_loader(
         (one process of a multi-host run; ``grain.sharding.ShardByJaxProcess()`` or
         ``training.step.batch_shard``); None reads everything. ``drop_remainder`` is ignored:
         every shard gets the same number of rows.
+      nm_tiles: also yield ``nm_tile`` (an NM model's map input: the same tile of each city's
+        stored OSM class raster, ``data.variants.load_osm_classes``).
+      nm_rasters: city -> OSM class raster, to bypass the stored ones (implies ``nm_tiles``).
     """
     cfg = config or LoaderConfig()
     if batch_size < 1:
@@ -267,9 +306,12 @@ def make_loader(
     n = sum(c for _, c in files)
     if n == 0:
         raise RecordError(f"{dataset_dir}: split {split!r} has no records")
+    cities = sorted(man["splits"][split]["cities"])
     if rasters is None:
-        rasters = load_rasters(dataset_dir, map_variant, sorted(man["splits"][split]["cities"]))
-    transform = FrameTransform(rasters, cfg.max_points, train)
+        rasters = load_rasters(dataset_dir, map_variant, cities)
+    if nm_tiles and nm_rasters is None:
+        nm_rasters = load_osm_classes(dataset_dir, cities)
+    transform = FrameTransform(rasters, cfg.max_points, train, nm_rasters)
     if train:
         if n < batch_size:
             raise RecordError(f"split {split!r} has {n} records < batch_size {batch_size}")

@@ -5,12 +5,15 @@ Layout of a dataset directory (all paths in the manifest are relative to it)::
     manifest.json
     sensors/<split>/<split>-00000-of-00008.array_record   # records, see data.records
     maps/<variant>/<city>.npz                              # cached city rasters per map variant
+    maps/osm_classes/<city>.npz                            # the OSM class rasters (NM models)
 
 Manifest keys: ``format`` (``FORMAT``), ``manifest_version``, ``record_version``,
 ``code_version`` (package version), ``config`` (the preparation config as a plain dict; a resume
 or a loader with another config is refused), ``splits`` (split -> ``{"shards": [{"file",
 "count", "sha256", "bytes"}], "count", "cities": {city: count}}``), ``map_variants`` (variant ->
-``{"config", "files": {city: path}}``) and ``complete`` (all shards written).
+``{"config", "files": {city: path}}``), ``complete`` (all shards written) and, once an NM
+model's data was prepared, ``osm_classes`` (``{"config": the class table, "files": {city:
+path}}``, :mod:`.variants`).
 
 Integrity: a shard's SHA-256 and size are recorded when it is written; the loader checks them
 before it reads a split (:func:`verify_split`). Shard ``i`` of ``n`` of split ``s`` is

@@ -58,6 +58,9 @@ BATCH_KEYS: dict[str, tuple[str, tuple]] = {
     "points_mask": ("bool", ("B", "P")),  # True for real points
     "bev_gt": ("float32", ("B", "C", 128, 128)),  # {0, 1} map cut out at the GT pose
     "tile": ("float32", ("B", "C", 256, 256)),  # {0, 1} map tile around the prior
+    # NM models only (OPTIONAL_BATCH_KEYS): the same tile of the OSM class raster
+    # (maps.OSM_CLASSES), {0, 1}
+    "nm_tile": ("uint8", ("B", "C_osm", 256, 256)),
     "pose_tile": ("float32", ("B", 3)),  # GT (dx, dy, yaw) relative to the tile centre
     # Metadata kept in NumPy (never passed into jit): BATCH_METADATA_KEYS.
     "tile_center": ("float64", ("B", 2)),  # world (x, y) of the tile centre (snapped prior)
@@ -80,6 +83,10 @@ BATCH_METADATA_KEYS = (
     "frame_index",
     "timestamp",
 )
+
+
+# Batch keys the loader yields only when asked (``make_loader(nm_tiles=True)``: an NM model).
+OPTIONAL_BATCH_KEYS = ("nm_tile",)
 
 
 class SchemaError(ValueError):

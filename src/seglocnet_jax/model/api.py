@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from seglocnet_jax import geometry, losses, solver
 from seglocnet_jax.model.config import ModelConfig
 from seglocnet_jax.model.neural_map import NeuralMapEncoder
-from seglocnet_jax.model.seglocnet import SegLocNet, check_batch, required_keys
+from seglocnet_jax.model.seglocnet import NM_MAP_KEY, SegLocNet, check_batch, required_keys
 
 
 @functools.lru_cache(maxsize=32)
@@ -62,12 +62,15 @@ def forward(
     )
 
 
-def encode_map(params: dict, tile: jax.Array, cfg: ModelConfig) -> jax.Array:
-    """The NM map side alone: tiles ``(B, C, 256, 256)`` -> ``map_match (B, D', 256, 256)``,
-    as :func:`forward` computes it (the same module and parameters)."""
+def encode_map(params: dict, batch: dict, cfg: ModelConfig) -> jax.Array:
+    """The NM map side alone: ``batch["nm_tile"]`` (``(B, C_osm, 256, 256)``, the OSM class
+    tiles) -> ``map_match (B, D', 256, 256)``, as :func:`forward` computes it (the same module
+    and parameters)."""
     if cfg.variant != "nm":
         raise ValueError(f"encode_map needs model.variant=nm, got {cfg.variant!r}")
-    out = NeuralMapEncoder(cfg).apply({"params": params["neural_map"]}, tile)
+    if NM_MAP_KEY not in batch:  # names it (the sensors are the network's side, not read here)
+        check_batch({k: None for k in required_keys(cfg, map_side=False)}, cfg)
+    out = NeuralMapEncoder(cfg).apply({"params": params["neural_map"]}, batch[NM_MAP_KEY])
     return jnp.moveaxis(out, -1, 1)
 
 

@@ -1,5 +1,7 @@
-"""SegLocNet-NM: a small U-Net turns the map tile into matching features, matched against BEV
-matching features by the exhaustive solver's score volume.
+"""SegLocNet-NM: a small U-Net turns the tile of the multi-class OSM raster (the paper's
+rasterized SD map: road classes, paths, buildings, parking, green, water; ``maps.OSM_CLASSES``)
+into matching features, matched against BEV matching features by the exhaustive solver's score
+volume.
 
 Both feature maps are L2-normalized per pixel, so the score volume sums cosine similarities; a
 learned positive factor (initial ``nm_init_scale``) sets the sharpness of the log-softmax over
@@ -22,7 +24,8 @@ def l2_normalize(x: jax.Array, axis: int = -1, eps: float = 1e-6) -> jax.Array:
 
 
 class NeuralMapEncoder(nn.Module):
-    """U-Net over the tile: ``(B, C, 256, 256)`` {0, 1} -> ``(B, 256, 256, D')`` (unit norm)."""
+    """U-Net over the OSM class tile: ``(B, C_osm, 256, 256)`` {0, 1} (any dtype) ->
+    ``(B, 256, 256, D')`` (unit norm)."""
 
     cfg: ModelConfig
 

@@ -21,16 +21,21 @@ CAMERA_KEYS = ("images", "intrinsics", "cam_to_ego")
 LIDAR_KEYS = ("points", "points_mask")
 
 
+# What the NM map side reads: the tile of the multi-class OSM raster (``maps.OSM_CLASSES``),
+# ``(B, C_osm, 256, 256)`` {0, 1}, placed like ``tile`` (``make_loader(nm_tiles=True)``).
+NM_MAP_KEY = "nm_tile"
+
+
 def required_keys(cfg: ModelConfig, map_side: bool = True) -> tuple[str, ...]:
     """Batch keys the network reads for this configuration (``map_side=False``: without the
-    NM map side, the tile)."""
+    NM map side, :data:`NM_MAP_KEY`)."""
     keys = ()
     if cfg.use_camera:
         keys += CAMERA_KEYS
     if cfg.use_lidar:
         keys += LIDAR_KEYS
     if cfg.variant == "nm" and map_side:
-        keys += ("tile",)
+        keys += (NM_MAP_KEY,)
     return keys
 
 
@@ -38,9 +43,15 @@ def check_batch(batch: dict, cfg: ModelConfig, map_side: bool = True):
     """Raises a ``KeyError`` naming the missing batch keys for ``model.modality`` / variant."""
     missing = [k for k in required_keys(cfg, map_side) if k not in batch]
     if missing:
+        hint = ""
+        if NM_MAP_KEY in missing:
+            hint = (
+                f"; {NM_MAP_KEY!r} is the OSM class raster's tile: "
+                "data.loader.make_loader(nm_tiles=True)"
+            )
         raise KeyError(
             f"batch lacks key(s) {missing} needed by model.modality="
-            f"{cfg.modality!r}, model.variant={cfg.variant!r}"
+            f"{cfg.modality!r}, model.variant={cfg.variant!r}{hint}"
         )
 
 
@@ -50,10 +61,11 @@ class SegLocNet(nn.Module):
     ``aux`` holds: ``bev_latent`` (B, 16, 16, D) fused latent; ``camera_latent`` /
     ``lidar_latent`` (B, 16, 16, D) for the built branches; ``bev_features`` (B, 128, 128, F)
     the decoder's last features; for the NM variant ``bev_match`` (B, D', 128, 128),
-    ``map_match`` (B, D', 256, 256) (unit-norm per pixel, channels first like the solver's
-    inputs) and ``match_scale`` () the learned score factor. ``map_side=False`` leaves the
-    map side out (no ``map_match``: the localize step computes the BEV once per frame and the
-    neural map per tile, :func:`seglocnet_jax.model.api.encode_map`).
+    ``map_match`` (B, D', 256, 256) (the neural map of ``batch["nm_tile"]``; both unit-norm per
+    pixel, channels first like the solver's inputs) and ``match_scale`` () the learned score
+    factor. ``map_side=False`` leaves the map side out (no ``map_match``: the localize step
+    computes the BEV once per frame and the neural map per tile,
+    :func:`seglocnet_jax.model.api.encode_map`).
     """
 
     cfg: ModelConfig
@@ -87,7 +99,7 @@ class SegLocNet(nn.Module):
             bev_match = BevMatchingHead(cfg, name="bev_match")(feats)  # (B, 128, 128, D')
             aux["bev_match"] = jnp.moveaxis(bev_match, -1, 1)  # (B, D', 128, 128)
             if map_side:
-                map_match = NeuralMapEncoder(cfg, name="neural_map")(batch["tile"])
+                map_match = NeuralMapEncoder(cfg, name="neural_map")(batch[NM_MAP_KEY])
                 aux["map_match"] = jnp.moveaxis(map_match, -1, 1)  # (B, D', 256, 256)
             aux["match_scale"] = MatchScale(cfg.nm_init_scale, name="match_scale")()
         return jnp.moveaxis(logits, -1, 1), aux  # (B, C, 128, 128)

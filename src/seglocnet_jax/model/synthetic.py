@@ -5,7 +5,8 @@ Each scene is a BEV label map (a road band, maybe a crossing, a few buildings be
 The LiDAR sees it (bright flat returns on the road, tall returns on buildings) and the cameras
 see it (a flat-world render: grey road, red building footprints, green elsewhere, blue sky), so
 the labels are learnable from either modality. A map tile contains the labels at a known cell,
-so ``pose_tile`` is exact (heading north: solver rotation 0).
+so ``pose_tile`` is exact (heading north: solver rotation 0); the NM model's ``nm_tile`` is that
+tile in the OSM class raster's channels (road in ``road_minor``, building in ``building``).
 """
 
 from __future__ import annotations
@@ -18,6 +19,10 @@ from seglocnet_jax import geometry
 
 ROAD, BUILDING = 0, 1
 CAMERA_HEIGHT = 1.5  # metres above the ego origin (on the ground)
+# The OSM class raster's channel count and where road / building go in it: maps.OSM_CLASSES
+# (the model floor does not import maps; tests/test_model.py pins these to it).
+NUM_OSM_CLASSES = 9
+OSM_ROAD, OSM_BUILDING = 2, 5  # road_minor, building
 
 
 def scene_labels(rng: np.random.Generator, size: int = geometry.BEV_SIZE) -> np.ndarray:
@@ -104,9 +109,9 @@ def make_batch(
     num_points: int = 8192,
     num_rotations: int = geometry.NUM_ROTATIONS,
 ) -> dict:
-    """A batch with the ``BATCH_KEYS`` the model and solver read, plus ``tile_center`` and
-    ``pose`` (not the loader's ids, ``valid`` or sequence metadata); the GT cell is drawn
-    uniformly in the volume."""
+    """A batch with the ``BATCH_KEYS`` the model and solver read (``nm_tile`` too), plus
+    ``tile_center`` and ``pose`` (not the loader's ids, ``valid`` or sequence metadata); the GT
+    cell is drawn uniformly in the volume."""
     rng = np.random.default_rng(seed)
     h, w = image_hw
     intr, cam = camera_rig(num_cams, h, w)
@@ -125,6 +130,10 @@ def make_batch(
         yaw = geometry.yaw_from_rotation(0, num_rotations)
         out["pose_tile"].append(np.array([dx, dy, yaw], np.float32))
     batch = {k: np.stack(v) for k, v in out.items()}
+    nm_tile = np.zeros((batch_size, NUM_OSM_CLASSES, *batch["tile"].shape[2:]), np.uint8)
+    nm_tile[:, OSM_ROAD] = batch["tile"][:, ROAD]
+    nm_tile[:, OSM_BUILDING] = batch["tile"][:, BUILDING]
+    batch["nm_tile"] = nm_tile
     batch["intrinsics"] = np.tile(intr, (batch_size, 1, 1, 1))
     batch["cam_to_ego"] = np.tile(cam, (batch_size, 1, 1, 1))
     batch["points_mask"] = np.ones((batch_size, num_points), bool)

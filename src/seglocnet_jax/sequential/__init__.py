@@ -8,7 +8,8 @@ Bayes filter over the solver's pose grid (:mod:`seglocnet_jax.tracking`), frame 
               windows that cover it (tracking.hypotheses), every later step below then runs
               per window and the windows are weighted by their evidence
     frame t:  belief = predict(belief, odometry[t])          # the vehicle's own odometry
-              tile   = the map raster cut around the belief's window centre (never the truth)
+              tile   = the map raster cut around the belief's window centre (never the truth;
+                       NM: also the OSM class raster's tile there, the neural map's input)
               volume = the one localize step (evaluation.make_localize_step, volume variant)
               belief = update(belief, log_softmax(volume / T))   # loss detection + re-widening
               (eval.tracker.off_road > 0: plus the on-road prior of the tile's road channel)
@@ -162,6 +163,7 @@ def evaluate_sequential(
         map_variant=map_variant,
         loader_cfg=loader_cfg,
         threads=max(1, loader_cfg.num_threads),
+        nm_tiles=step.reads_nm_tile,
     )
     common = {
         "cfg": cfg,

@@ -51,16 +51,31 @@ class Drive:
 
 
 class DriveSplit:
-    """Random access to the frames of a split, grouped into :class:`Drive` s."""
+    """Random access to the frames of a split, grouped into :class:`Drive` s.
 
-    def __init__(self, dataset_dir: str, split: str, map_variant: str, loader_cfg, *, threads=1):
+    ``rasters``: the map variant's city rasters; ``nm_rasters``: with ``nm_tiles`` (an NM
+    model), the cities' OSM class rasters (the rows then carry ``nm_tile``), else None."""
+
+    def __init__(
+        self,
+        dataset_dir: str,
+        split: str,
+        map_variant: str,
+        loader_cfg,
+        *,
+        threads=1,
+        nm_tiles: bool = False,
+    ):
         man = read_manifest(dataset_dir)
         self.name = split
         # The loader's check (counts, SHA-256 of every shard) before any record is read.
         self.source = loader_lib.ShardSource(verify_split(man, dataset_dir, split))
         cities = sorted(man["splits"][split]["cities"])
         self.rasters = loader_lib.load_rasters(dataset_dir, map_variant, cities)
-        self.transform = loader_lib.FrameTransform(self.rasters, loader_cfg.max_points, train=False)
+        self.nm_rasters = loader_lib.load_osm_classes(dataset_dir, cities) if nm_tiles else None
+        self.transform = loader_lib.FrameTransform(
+            self.rasters, loader_cfg.max_points, train=False, nm_rasters=self.nm_rasters
+        )
         self.pool = concurrent.futures.ThreadPoolExecutor(max(1, threads))
         self.drives = self._index()
 

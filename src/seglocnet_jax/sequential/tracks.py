@@ -17,6 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from seglocnet_jax import solver, tracking
+from seglocnet_jax.data import loader as loader_lib
 from seglocnet_jax.evaluation import LocalizeStep
 from seglocnet_jax.sequential.config import road_channels
 from seglocnet_jax.sequential.drive_filter import DriveFilter, Track
@@ -100,17 +101,22 @@ def _stack(rows: list[dict]) -> dict:
     return {k: np.stack([np.asarray(r[k]) for r in rows]) for k in rows[0]}
 
 
-def _window_row(row: dict, tile, centre) -> dict:
+def _window_row(row: dict, tile, centre, nm_rasters=None) -> dict:
     """A window's tile row: its tile, centre and the GT in that tile's frame (``pose_tile``,
-    read by nothing the filter runs), with the frame's index and GT pose."""
+    read by nothing the filter runs), with the frame's index and GT pose; with ``nm_rasters``
+    (an NM model's OSM class rasters) also the same tile of the row's city's (``nm_tile``)."""
     pose = np.asarray(row["pose"], np.float64)
-    return {
+    out = {
         "tile": np.asarray(tile, np.float32),
         "tile_center": centre,
         "pose_tile": np.array([*(pose[:2] - centre), pose[2]], np.float32),
         "pose": pose,
         "frame_index": row["frame_index"],
     }
+    if nm_rasters is not None:
+        city = str(row["city"])
+        out["nm_tile"] = loader_lib.nm_tile(nm_rasters, city, *centre, f"window of {city!r}")
+    return out
 
 
 def _volumes(step, params, place, bev, rows, owners, roads, temps, *, off_road, batch_size) -> list:
@@ -222,7 +228,11 @@ def track_candidates(
                 ((j, c), f.tiles()) for j, s in enumerate(active) for c, f in enumerate(slots[s])
             ]
             owners = [key for key, tiles in windows for _ in tiles]
-            window_rows = [_window_row(rows[j], *tc) for (j, _), tiles in windows for tc in tiles]
+            window_rows = [
+                _window_row(rows[j], *tc, split.nm_rasters)
+                for (j, _), tiles in windows
+                for tc in tiles
+            ]
             roads = None
             if road_of is not None:
                 cities = [slots[active[j]][0].drive.city for j, _ in owners]

@@ -174,12 +174,14 @@ class FrameLoader:
         return sample
 
 
-def convert(reader: RealReader, cfg: ConvertConfig, *, variants: bool = True) -> str:
+def convert(
+    reader: RealReader, cfg: ConvertConfig, *, variants: bool = True, osm_classes: bool = False
+) -> str:
     """Converts (or resumes, or checks) ``<cfg.root>/<cfg.name>``; returns that directory.
 
     Sensors go through :class:`data.writer.DatasetWriter` (the simulator pipeline's records,
     shards, manifest and seeded priors), in ``cfg.workers()`` processes; then the map variants
-    (:mod:`.map_rasters`).
+    (:mod:`.map_rasters`) and, with ``osm_classes`` (an NM model), the OSM class rasters.
     """
     dataset_dir = os.path.join(cfg.root, cfg.name)
     frames = {out: reader.frames(src) for out, src in cfg.splits.items()}
@@ -213,18 +215,22 @@ def convert(reader: RealReader, cfg: ConvertConfig, *, variants: bool = True) ->
         poses = {}
         for f in (f for fr in frames.values() for f in fr):
             poses.setdefault(f.city, []).append(f.pose)
-        ensure_real_variants(dataset_dir, reader, cfg, poses)
+        ensure_real_variants(dataset_dir, reader, cfg, poses, osm_classes=osm_classes)
     return dataset_dir
 
 
-def convert_for_training(reader: RealReader, cfg: ConvertConfig, variant: MapConfig):
+def convert_for_training(
+    reader: RealReader, cfg: ConvertConfig, variant: MapConfig, *, osm_classes: bool = False
+):
     """What a training app calls for a real dataset (twin of ``prepare.prepare_for_training``):
-    converts what is missing, adds ``variant`` to the map variants, and returns
-    ``(dataset_dir, variant name)`` for :func:`loader.make_loader`."""
+    converts what is missing, adds ``variant`` to the map variants (and with ``osm_classes``
+    the OSM class rasters of an NM model), and returns ``(dataset_dir, variant name)`` for
+    :func:`loader.make_loader`."""
     specs = [dict(v) for v in cfg.map_variants]
     if variant not in [MapConfig(**v) for v in specs]:
         specs.append(variant.to_dict())
-    return convert(reader, dataclasses.replace(cfg, map_variants=tuple(specs))), variant.name
+    cfg = dataclasses.replace(cfg, map_variants=tuple(specs))
+    return convert(reader, cfg, osm_classes=osm_classes), variant.name
 
 
 def parse_tree(tree: dict, prefix: str = "dataset"):

@@ -12,7 +12,9 @@ HD = drivable area + corrected OSM buildings; SD = corrected OSM centrelines
 buffered to ``road_width`` + buildings. Rasters land in ``maps/<variant>/<city>.npz``
 (:func:`..variants.variant_path`: the dataset's city names are the keys) and
 ``manifest.map_variants`` exactly as :mod:`..variants` writes them, so the loader reads both the
-same way.
+same way. For an NM model, the multi-class OSM raster of the corrected OSM
+(:func:`seglocnet_jax.maps.rasterize_osm_classes`) lands in ``maps/osm_classes/<city>.npz`` and
+the manifest's ``osm_classes`` the same way.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from shapely import affinity
 
 from seglocnet_jax import fileio, geometry, maps
 from seglocnet_jax.data import manifest as mf
+from seglocnet_jax.data import variants as variants_lib
 from seglocnet_jax.data.real.align_fit import fit_windows
 from seglocnet_jax.data.real.align_windows import (
     downsample,
@@ -125,26 +128,41 @@ def fit_alignment(
 
 
 def apply_alignment(city: maps.CityGeometry, sim: Similarity) -> maps.CityGeometry:
-    """``city`` with every road and building moved by ``sim`` (bounds follow)."""
+    """``city`` with every road, building, other way and area moved by ``sim`` (bounds
+    follow)."""
     params = sim.shapely_params()
-    roads = tuple(
-        dataclasses.replace(r, geometry=affinity.affine_transform(r.geometry, params))
-        for r in city.roads
-    )
-    buildings = tuple(
-        dataclasses.replace(b, geometry=affinity.affine_transform(b.geometry, params))
-        for b in city.buildings
-    )
+
+    def moved(features):
+        return tuple(
+            dataclasses.replace(f, geometry=affinity.affine_transform(f.geometry, params))
+            for f in features
+        )
+
     x0, y0, x1, y1 = city.bounds
     corners = sim.apply(np.array([[x0, y0], [x1, y0], [x0, y1], [x1, y1]]))
     bounds = (*corners.min(0).tolist(), *corners.max(0).tolist())
-    return dataclasses.replace(city, roads=roads, buildings=buildings, bounds=bounds)
+    return dataclasses.replace(
+        city,
+        roads=moved(city.roads),
+        buildings=moved(city.buildings),
+        ways=moved(city.ways),
+        areas=moved(city.areas),
+        bounds=bounds,
+    )
 
 
 def ensure_real_variants(
-    dataset_dir: str, reader, cfg, poses: dict | None = None, progress: bool = True
+    dataset_dir: str,
+    reader,
+    cfg,
+    poses: dict | None = None,
+    progress: bool = True,
+    *,
+    osm_classes: bool = False,
 ) -> dict:
-    """Fits (or reuses) each city's alignment and writes the missing variant rasters.
+    """Fits (or reuses) each city's alignment and writes the missing variant rasters (with
+    ``osm_classes``, also each city's OSM class raster, the NM model's map input; it needs the
+    city's OSM extract).
 
     Returns ``{city: alignment report}`` (:meth:`.alignment.Alignment.report`: shift m,
     rotation deg, scale, score, method, quality, windows; plus the OSM path and the manual
@@ -176,10 +194,17 @@ def ensure_real_variants(
             )
     reports = dict((stored or {}).get("cities", {}))
     vcfgs = [maps.MapConfig(**spec) for spec in cfg.map_variants]
+    classes = variants_lib.OSM_CLASSES
+    if osm_classes and not variants_lib.osm_classes_current(man):  # another class table
+        for city in cities:
+            if os.path.exists(variants_lib.osm_classes_path(dataset_dir, city)):
+                os.remove(variants_lib.osm_classes_path(dataset_dir, city))
     todo = []  # (city, paths, drivable, OSM geometry, alignment report, refitted)
     errors = []
     for city in cities:
         paths = {v.name: variant_path(dataset_dir, v.name, city) for v in vcfgs}
+        if osm_classes:
+            paths[classes] = variants_lib.osm_classes_path(dataset_dir, city)
         osm_path = (cfg.osm or {}).get(city)
         manual = cfg.align.manual.get(city)
         # A stored fit is reused only for the same OSM extract (none: identity, refit later)
@@ -215,6 +240,8 @@ def ensure_real_variants(
             for v in vcfgs:
                 if os.path.exists(paths[v.name]) and (v.kind == "sd" or "building" in v.channels):
                     os.remove(paths[v.name])
+            if classes in paths and os.path.exists(paths[classes]):
+                os.remove(paths[classes])
         reports[city] = report
         osm = apply_alignment(osm, Similarity.from_dict(report))
         for v in vcfgs:
@@ -231,6 +258,18 @@ def ensure_real_variants(
             if poses is not None and city in poses and "road" in v.channels:
                 on_road = reports[city].setdefault("poses_on_road", {})
                 on_road[v.name] = drivable_fraction(raster, np.asarray(poses[city]))
+        if classes in paths and not os.path.exists(paths[classes]):
+            if not (cfg.osm or {}).get(city):
+                raise RealDataError(
+                    f"the OSM class raster of {city!r} (the neural map's input, "
+                    f"model.variant=nm) needs OSM: set dataset.convert.osm.{city} to an "
+                    ".osm.pbf / .osm extract"
+                )
+            maps.rasterize_osm_classes(osm).save(paths[classes])  # atomic
+        if classes in paths:
+            variants_lib.record_osm_classes(
+                dataset_dir, {city: os.path.relpath(paths[classes], dataset_dir)}
+            )
         man = mf.read_manifest(dataset_dir)  # re-read: only our entries change
         man["alignment"] = {"config": align_cfg, "checks": cfg.align.checks(), "cities": reports}
         for v in vcfgs:

@@ -48,7 +48,7 @@ from seglocnet_jax.data.simulated.planning import (
     plan_test_city,
 )
 from seglocnet_jax.data.simulated.splits import SplitPlan
-from seglocnet_jax.data.variants import ensure_variant
+from seglocnet_jax.data.variants import ensure_osm_classes, ensure_variant
 from seglocnet_jax.maps import MapConfig, city_key
 
 
@@ -162,13 +162,18 @@ def default_source_factory(cfg: PrepareConfig) -> Callable[[str], FrameSource]:
 
 
 def prepare(
-    cfg: PrepareConfig, source_factory: Callable[[str], FrameSource] | None = None, *, variants=None
+    cfg: PrepareConfig,
+    source_factory: Callable[[str], FrameSource] | None = None,
+    *,
+    variants=None,
+    osm_classes: bool = False,
 ) -> str:
     """Prepares (or resumes, or just checks) ``<cfg.root>/<cfg.name>``; returns that directory.
 
     ``source_factory(city) -> FrameSource`` defaults to the simulator. ``variants`` (a sequence
     of ``maps.MapConfig``; None: those of ``cfg.map_variants``) are rasterized afterwards
-    unless already stored (:mod:`..variants`).
+    unless already stored (:mod:`..variants`); with ``osm_classes`` also the OSM class raster
+    of every city (the NM model's map input, :func:`..variants.ensure_osm_classes`).
 
     Holds ``fileio.DirLock(<dataset dir>)`` throughout (a second preparation of the same
     directory fails with :class:`fileio.LockError` naming the holder; a lock left by a killed
@@ -183,10 +188,10 @@ def prepare(
     try:
         lock.acquire()
     except (fileio.LockError, OSError) as err:  # another live preparation; a read-only dir
-        if not _nothing_to_write(cfg, dataset_dir, variants):
+        if not _nothing_to_write(cfg, dataset_dir, variants, osm_classes):
             raise
         print(f"note: {dataset_dir} is complete; checking it without the lock ({err})", flush=True)
-        return _prepare(cfg, dataset_dir, source_factory, variants)
+        return _prepare(cfg, dataset_dir, source_factory, variants, osm_classes)
     try:
         if lock.previous:
             print(
@@ -195,22 +200,23 @@ def prepare(
                 flush=True,
             )
         fileio.clean_stale_tmp(dataset_dir)
-        return _prepare(cfg, dataset_dir, source_factory, variants)
+        return _prepare(cfg, dataset_dir, source_factory, variants, osm_classes)
     finally:
         lock.release()
 
 
-def _nothing_to_write(cfg: PrepareConfig, dataset_dir: str, variants) -> bool:
+def _nothing_to_write(cfg: PrepareConfig, dataset_dir: str, variants, osm_classes) -> bool:
     """Whether :func:`_prepare` would only read and check (see :func:`dataset_ready`)."""
     if variants is None:
         variants = [MapConfig(**spec) for spec in cfg.map_variants]
-    return dataset_ready(dataset_dir, variants)
+    return dataset_ready(dataset_dir, variants, osm_classes=osm_classes)
 
 
-def dataset_ready(dataset_dir: str, variants) -> bool:
+def dataset_ready(dataset_dir: str, variants, *, osm_classes: bool = False) -> bool:
     """Whether ``dataset_dir`` holds complete sensor shards and every map variant of
-    ``variants`` (``MapConfig``s) for every city (simulated or converted alike)."""
-    from seglocnet_jax.data.variants import variant_path
+    ``variants`` (``MapConfig``s) for every city (simulated or converted alike); with
+    ``osm_classes`` also every city's current OSM class raster."""
+    from seglocnet_jax.data.variants import osm_classes_ready, variant_path
 
     try:
         man = mf.read_manifest(dataset_dir)
@@ -223,12 +229,13 @@ def dataset_ready(dataset_dir: str, variants) -> bool:
                 and all(os.path.exists(variant_path(dataset_dir, v.name, c)) for c in keys)
                 for v in variants
             )
+            and (not osm_classes or osm_classes_ready(dataset_dir, man))
         )
     except (ValueError, OSError):  # ManifestError, VariantError, ...: not ready
         return False
 
 
-def _prepare(cfg: PrepareConfig, dataset_dir: str, source_factory, variants) -> str:
+def _prepare(cfg: PrepareConfig, dataset_dir: str, source_factory, variants, osm_classes) -> str:
     identity = cfg.identity()
     man = None
     if cfg.source != "sim" and source_factory is None:
@@ -300,6 +307,8 @@ def _prepare(cfg: PrepareConfig, dataset_dir: str, source_factory, variants) -> 
     t0 = time.perf_counter()
     for vcfg in variants:
         ensure_variant(dataset_dir, vcfg, factory, sources)
+    if osm_classes:
+        ensure_osm_classes(dataset_dir)
     if times:
         times["map variants"] = time.perf_counter() - t0
         parts = ", ".join(f"{k} {v:.0f} s" for k, v in times.items())
@@ -311,13 +320,17 @@ def prepare_for_training(
     cfg: PrepareConfig,
     variant: MapConfig,
     source_factory: Callable[[str], FrameSource] | None = None,
+    *,
+    osm_classes: bool = False,
 ):
     """What the training app calls: prepares what is missing (sensors, ``cfg.map_variants`` and
-    ``variant``) and returns ``(dataset_dir, variant name)`` for :func:`loader.make_loader`."""
+    ``variant``; with ``osm_classes``, for an NM model, the OSM class rasters) and returns
+    ``(dataset_dir, variant name)`` for :func:`loader.make_loader`."""
     wanted = [MapConfig(**spec) for spec in cfg.map_variants]
     if variant not in wanted:
         wanted.append(variant)
-    return prepare(cfg, source_factory, variants=wanted), variant.name
+    dataset_dir = prepare(cfg, source_factory, variants=wanted, osm_classes=osm_classes)
+    return dataset_dir, variant.name
 
 
 def all_shards_exist(man: dict, dataset_dir: str) -> bool:
