@@ -20,6 +20,7 @@ from seglocnet_jax.app import evalset
 from seglocnet_jax.app.evalset import RESULTS, RUN_CONFIG
 from seglocnet_jax.app.schema import ExperimentConfig
 from seglocnet_jax.config_util import ConfigError
+from seglocnet_jax.model.config import ModelConfig
 from seglocnet_jax.training import checkpoint as ckpt_lib
 
 ARCHIVED_WITH_CHECKPOINTS = (RUN_CONFIG, "metrics.jsonl", "tb", *evalset.TRAIN_ITEMS)
@@ -66,6 +67,19 @@ def _defining(flat: dict, skip: tuple[str, ...]) -> dict:
     return {k: v for k, v in flat.items() if keep(k)}
 
 
+_NO_DEFAULT = object()
+
+
+def _added_model_key_default(key: str):
+    """The default of ``model.<field>`` (new network options default to the network as it was
+    before them, so a run stored without the key used that value), else a sentinel."""
+    field = key.removeprefix("model.")
+    if field == key or field not in {f.name for f in dataclasses.fields(ModelConfig)}:
+        return _NO_DEFAULT
+    value = getattr(ModelConfig(), field)
+    return list(value) if isinstance(value, tuple) else value
+
+
 def config_diff(
     stored: dict, current: dict, only: str | None = None, skip: tuple[str, ...] = NOT_DEFINING
 ) -> list[str]:
@@ -76,6 +90,8 @@ def config_diff(
     for key in sorted(set(a) | set(b)):
         if only and not (key == only or key.startswith(only + ".")):
             continue
+        if key not in a and key in b and b[key] == _added_model_key_default(key):
+            continue  # a network option added after this run, at its default: the same network
         if a.get(key, "<absent>") != b.get(key, "<absent>"):
             lines.append(f"{key}: {a.get(key, '<absent>')!r} -> {b.get(key, '<absent>')!r}")
     return lines
