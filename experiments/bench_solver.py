@@ -32,9 +32,9 @@ from seglocnet_jax import geometry, solver
 
 BARE_FFT = (
     "XLA FFT calls alone: the fft path's transforms (tile fft2 once per sample; per chunk of "
-    "rotations the two forward and the two inverse 1-D passes), same shapes, counts, loops and "
-    "order, each fed its own previous output; no pads, crops, transposes, rotation, products "
-    "or output assembly"
+    "rotations one forward fft2 of the templates and one inverse fft2 of the quarter pairs), "
+    "same shapes, counts, loops and order, each fed its own previous output; no padding, "
+    "rotation, products, crops or output assembly"
 )
 
 
@@ -46,18 +46,18 @@ def _chunks(num_rotations: int, rotation_chunk: int) -> tuple[int, int]:
 
 
 def _bare_sample(bufs, t0, num_rotations: int, rotation_chunk: int):
-    """One sample's FFT calls of ``solver._score_fft``. ``bufs``: inputs of the four passes of a
-    chunk, ``(chunk, C/2, S, T)``, ``(chunk, C/2, T, T)``, ``(chunk, 2, T, T)``,
-    ``(chunk, 2, T-S+1, T)``; ``t0 (2C, T, T)``: the tile side's."""
+    """One sample's FFT calls of ``solver._score_fft``. ``bufs``: inputs of the two transforms
+    of a chunk, ``(chunk, C/2, T, T)`` and ``(chunk, 2, T, T)``; ``t0 (2C, T, T)``: the tile
+    side's."""
     n_chunks = _chunks(num_rotations, rotation_chunk)[1]
     t_hat = jnp.fft.fft2(t0)
 
-    def chunk_calls(bufs, forward: bool):  # the four calls of one chunk
+    def chunk_calls(bufs, forward: bool):  # the two calls of one chunk
         # Directions alternate from chunk to chunk so that the data stay in range; a forward
         # and an inverse transform cost the same. (XLA:CPU runs independent FFTs one after the
         # other, as a profile shows, so none overlaps another.)
-        fwd, inv = (jnp.fft.fft, jnp.fft.ifft) if forward else (jnp.fft.ifft, jnp.fft.fft)
-        return tuple(fn(x, axis=-1) for fn, x in zip((fwd, fwd, inv, inv), bufs, strict=True))
+        fwd, inv = (jnp.fft.fft2, jnp.fft.ifft2) if forward else (jnp.fft.ifft2, jnp.fft.fft2)
+        return tuple(fn(x) for fn, x in zip((fwd, inv), bufs, strict=True))
 
     bufs = jax.lax.fori_loop(
         0, n_chunks // 2, lambda i, b: chunk_calls(chunk_calls(b, True), False), bufs
@@ -96,12 +96,7 @@ def bench(batch: int, repeats: int, conv_repeats: int, num_rotations: int, seed:
     def normal(*shape):
         return jnp.asarray(rng.normal(size=(batch,) + shape), jnp.complex64)
 
-    bufs = (
-        normal(chunk, pairs, size, tsize),
-        normal(chunk, pairs, tsize, tsize),
-        normal(chunk, 2, tsize, tsize),
-        normal(chunk, 2, tsize - size + 1, tsize),
-    )
+    bufs = (normal(chunk, pairs, tsize, tsize), normal(chunk, 2, tsize, tsize))
     t0 = normal(4 * pairs, tsize, tsize)
     runs = {
         "fft": lambda: solver.score_volume_batch(

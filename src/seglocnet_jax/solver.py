@@ -21,8 +21,12 @@ Two methods compute ``M``: ``"conv"`` (``lax.conv_general_dilated``, the referen
   ``f + 1/2``, where ``-f`` is the reversed array (no wrap-around index), and the valid
   correlations are unchanged by that shift;
 - quarter turns ``q`` and ``q + 2`` share one complex inverse (real and imaginary parts);
-- transforms run as 1-D passes: the template's all-zero padding rows are never transformed,
-  and the inverse crops to the valid rows between its two passes.
+- transforms are 2-D XLA FFTs (one forward per angle, one inverse per quarter pair): on CPU,
+  1-D passes that skip the padding rows need a transpose between passes, and XLA's transposes
+  cost as much as the FFT work they save;
+- the angles are looped over in chunks, each turned copy sampled straight into the corner of a
+  zero-padded transform input (bilinear points tabulated once with NumPy) and each quarter's
+  valid correlation written in place into the volume: per chunk, the working set stays in cache.
 """
 
 from __future__ import annotations
@@ -179,16 +183,56 @@ def _half_phase(rows: int, cols: int, length: int, sign: int) -> np.ndarray:
     return np.exp(sign * 1j * np.pi * (a + b) / length).astype(np.complex64)
 
 
+@functools.lru_cache(maxsize=8)
+def _sampling_tables(num_rotations: int, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The bilinear samples of the ``K/4`` turned copies, tabulated once per ``(K, S)``.
+
+    Returns three ``(K/4, S, S)`` tables: ``base`` (int32), the flat index of each sample's
+    top-left neighbour in the BEV padded with one zero row and column before and two after
+    (``(S + 3)^2`` pixels; a neighbourhood wholly outside points at the all-zero bottom-right
+    block), and the row and column fractions ``fr``, ``fc`` (float32). The points are
+    :func:`_source_terms`' in float32, so the fft path samples where :func:`rotate_bev` does;
+    a neighbour outside the BEV reads a zero instead of being weighted by zero.
+    """
+    quarter = num_rotations // 4
+    angles = geometry.rotation_angle(np.arange(quarter), num_rotations)
+    cu, sv, su, cv = _source_terms(angles, size)
+    col = cu[:, None, :] - sv[:, :, None]  # (K/4, S, S), float32 as in _rotate_channels
+    row = su[:, None, :] + cv[:, :, None]
+    col0, row0 = np.floor(col), np.floor(row)
+    fc, fr = col - col0, row - row0
+    width = size + 3
+    near = (row0 >= -1) & (row0 <= size - 1) & (col0 >= -1) & (col0 <= size - 1)
+    base = np.where(near, (row0 + 1) * width + col0 + 1, (size + 1) * (width + 1))
+    return base.astype(np.int32), fr.astype(np.float32), fc.astype(np.float32)
+
+
+def _turn_pairs(pairs: jax.Array, base: jax.Array, fr: jax.Array, fc: jax.Array) -> jax.Array:
+    """Turned copies of channel pairs packed as complex images, bilinear at the
+    :func:`_sampling_tables` rows ``base, fr, fc`` ``(M, S, S)``: ``(C/2, S, S)`` complex ->
+    ``(M, C/2, S, S)``. Four scalar gathers per sample (both channels at once), inside the loop
+    over angles: written straight into the padded transform input."""
+    size = pairs.shape[-1]
+    width = size + 3
+    flat = jnp.pad(pairs, ((0, 0), (1, 2), (1, 2))).reshape(pairs.shape[0], -1)
+    gather = jax.vmap(lambda idx: flat[:, idx], in_axes=0, out_axes=0)  # (M, C/2, S, S)
+
+    def corner(offset, weight):
+        return gather(base + offset) * weight[:, None]
+
+    out = corner(0, (1 - fr) * (1 - fc)) + corner(1, (1 - fr) * fc)
+    return out + corner(width, fr * (1 - fc)) + corner(width + 1, fr * fc)
+
+
 def _tile_spectra(tile: jax.Array) -> tuple[jax.Array, jax.Array]:
     """The tile side of the fft path, once per sample: ``A, B`` ``(C/2, 2, T, T)``.
 
     For channel pair ``j`` and quarter pair ``p`` (quarters ``p`` and ``p + 2``), with
     ``h_c = rot90(T_c, -p) + i rot90(T_c, -p - 2)``: ``A`` is the spectrum of
-    ``(h_2j + i h_2j+1) / 2`` and ``B`` that of ``(h_2j - i h_2j+1) / 2``, on the half-bin
-    grid, transposed (``[v, u]``: column frequency first) like the templates'.
+    ``(h_2j + i h_2j+1) / 2`` and ``B`` that of ``(h_2j - i h_2j+1) / 2``, on the half-bin grid.
     """
     c_dim, tsize = tile.shape[0], tile.shape[1]
-    turned = [[jnp.rot90(tile[ch], -q).T for q in range(4)] for ch in range(c_dim)]
+    turned = [[jnp.rot90(tile[ch], -q) for q in range(4)] for ch in range(c_dim)]
     parts = []
     for j in range(c_dim // 2):
         for p in range(2):
@@ -208,31 +252,29 @@ def _score_fft(bev, tile, num_rotations, rotation_chunk):
     quarter = num_rotations // 4
     chunk = math.gcd(quarter, rotation_chunk) if rotation_chunk else quarter
     a_hat, b_hat = _tile_spectra(tile)  # (C/2, 2, T, T)
+    pairs = jax.lax.complex(bev[0::2], bev[1::2])  # (C/2, S, S)
     mod_in = _half_phase(size, size, tsize, -1)
     mod_out = _half_phase(n_valid, n_valid, tsize, 1)
-    # All K/4 turned copies at once, channel pairs packed as complex (C/2 per angle): as
-    # separate gathers they cost a tenth of what they cost fused into the loop.
-    terms = _source_terms(geometry.rotation_angle(np.arange(quarter), num_rotations), size)
-    turned = _rotate_channels(bev, terms)  # C x (K/4, S, S); k = 0 is exact
-    packed = [jax.lax.complex(turned[2 * j], turned[2 * j + 1]) for j in range(c_dim // 2)]
-    packed = (jnp.stack(packed, 1) * mod_in).reshape(-1, chunk, c_dim // 2, size, size)
+    tables = [t.reshape(-1, chunk, size, size) for t in _sampling_tables(num_rotations, size)]
 
-    def correlate(i):  # chunk i of the quarter's angles -> (4, chunk, 129, 129)
-        z = jnp.fft.fft(packed[i], n=tsize, axis=-1)  # (chunk, C/2, S, T) [a, v]
-        z = jnp.fft.fft(jnp.swapaxes(z, -1, -2), n=tsize, axis=-1)  # (chunk, C/2, T, T) [v, u]
+    def step(i, carry):  # chunk i of the quarter's angles
+        padded, out = carry
+        turned = _turn_pairs(pairs, *(jnp.asarray(t)[i] for t in tables)) * mod_in
+        # Only the template's corner changes: the zero padding of the carry stays as it is.
+        padded = jax.lax.dynamic_update_slice(padded, turned, (0, 0, 0, 0))
+        z = jnp.fft.fft2(padded)  # (chunk, C/2, T, T)
         # Z(-f) is the reversed array on the half-bin grid: conj(F_c) = (conj(Z) + Z(-f)) / 2...
         spec = jnp.conj(z)[:, :, None] * a_hat + jnp.flip(z, (-2, -1))[:, :, None] * b_hat
-        spec = jnp.fft.ifft(spec.sum(axis=1), axis=-1)[..., :n_valid]  # (chunk, 2, T, 129)
-        corr = jnp.fft.ifft(jnp.swapaxes(spec, -1, -2), axis=-1)[..., :n_valid] * mod_out
-        re, im = jnp.real(corr), jnp.imag(corr)  # quarters (0, 1) and (2, 3), (chunk, 2, ...)
-        turns = [re[:, 0], re[:, 1], im[:, 0], im[:, 1]]
-        return jnp.stack([jnp.rot90(turns[q], q, axes=(1, 2)) for q in range(4)])
+        corr = jnp.fft.ifft2(spec.sum(axis=1))  # (chunk, 2, T, T): quarters (0, 2) and (1, 3)
+        for q in range(4):  # in place, one quarter at a time: no assembly pass over the volume
+            part = corr[:, q % 2, :n_valid, :n_valid] * mod_out
+            part = jnp.rot90(jnp.real(part) if q < 2 else jnp.imag(part), q, axes=(1, 2))
+            out = jax.lax.dynamic_update_slice(out, part[None], (q, i * chunk, 0, 0))
+        return padded, out
 
-    def write(i, out):  # in place: no assembly pass over the (K, 129, 129) volume
-        return jax.lax.dynamic_update_slice(out, correlate(i), (0, i * chunk, 0, 0))
-
+    padded = jnp.zeros((chunk, c_dim // 2, tsize, tsize), jnp.complex64)
     out = jnp.zeros((4, quarter, n_valid, n_valid), jnp.float32)
-    out = jax.lax.fori_loop(0, quarter // chunk, write, out)
+    _, out = jax.lax.fori_loop(0, quarter // chunk, step, (padded, out))
     return out.reshape(num_rotations, n_valid, n_valid)
 
 
