@@ -244,38 +244,45 @@ def _tile_spectra(tile: jax.Array) -> tuple[jax.Array, jax.Array]:
     return spec[:, :, 0], spec[:, :, 1]
 
 
-def _score_fft(bev, tile, num_rotations, rotation_chunk):
-    if bev.shape[0] % 2:  # channels go in pairs: one zero channel more changes no score
-        bev, tile = (jnp.concatenate([x, jnp.zeros_like(x[:1])]) for x in (bev, tile))
-    c_dim, size, tsize = bev.shape[0], bev.shape[1], tile.shape[1]
+def _score_fft(bevs, tiles, num_rotations, rotation_chunk):
+    """The fft path over samples in sequence: ``(B, C, S, S)``, ``(B, C, T, T)`` ->
+    ``(B, K, T - S + 1, T - S + 1)``, each sample's quarters written in place into the one
+    output (no per-sample volume to initialize and copy into a stacked result)."""
+    if bevs.shape[1] % 2:  # channels go in pairs: one zero channel more changes no score
+        bevs, tiles = (jnp.concatenate([x, jnp.zeros_like(x[:, :1])], 1) for x in (bevs, tiles))
+    batch, c_dim, size, tsize = bevs.shape[0], bevs.shape[1], bevs.shape[2], tiles.shape[2]
     n_valid = tsize - size + 1
     quarter = num_rotations // 4
     chunk = math.gcd(quarter, rotation_chunk) if rotation_chunk else quarter
-    a_hat, b_hat = _tile_spectra(tile)  # (C/2, 2, T, T)
-    pairs = jax.lax.complex(bev[0::2], bev[1::2])  # (C/2, S, S)
     mod_in = _half_phase(size, size, tsize, -1)
     mod_out = _half_phase(n_valid, n_valid, tsize, 1)
     tables = [t.reshape(-1, chunk, size, size) for t in _sampling_tables(num_rotations, size)]
 
-    def step(i, carry):  # chunk i of the quarter's angles
-        padded, out = carry
-        turned = _turn_pairs(pairs, *(jnp.asarray(t)[i] for t in tables)) * mod_in
-        # Only the template's corner changes: the zero padding of the carry stays as it is.
-        padded = jax.lax.dynamic_update_slice(padded, turned, (0, 0, 0, 0))
-        z = jnp.fft.fft2(padded)  # (chunk, C/2, T, T)
-        # Z(-f) is the reversed array on the half-bin grid: conj(F_c) = (conj(Z) + Z(-f)) / 2...
-        spec = jnp.conj(z)[:, :, None] * a_hat + jnp.flip(z, (-2, -1))[:, :, None] * b_hat
-        corr = jnp.fft.ifft2(spec.sum(axis=1))  # (chunk, 2, T, T): quarters (0, 2) and (1, 3)
-        for q in range(4):  # in place, one quarter at a time: no assembly pass over the volume
-            part = corr[:, q % 2, :n_valid, :n_valid] * mod_out
-            part = jnp.rot90(jnp.real(part) if q < 2 else jnp.imag(part), q, axes=(1, 2))
-            out = jax.lax.dynamic_update_slice(out, part[None], (q, i * chunk, 0, 0))
-        return padded, out
+    def sample(b, carry):
+        a_hat, b_hat = _tile_spectra(tiles[b])  # (C/2, 2, T, T)
+        pairs = jax.lax.complex(bevs[b, 0::2], bevs[b, 1::2])  # (C/2, S, S)
+
+        def step(i, carry):  # chunk i of the quarter's angles
+            padded, out = carry
+            turned = _turn_pairs(pairs, *(jnp.asarray(t)[i] for t in tables)) * mod_in
+            # Only the template's corner changes: the zero padding of the carry stays as it is.
+            padded = jax.lax.dynamic_update_slice(padded, turned, (0, 0, 0, 0))
+            z = jnp.fft.fft2(padded)  # (chunk, C/2, T, T)
+            # Z(-f) is the reversed array on the half-bin grid: conj(F_c) = (conj(Z) + Z(-f))/2...
+            spec = jnp.conj(z)[:, :, None] * a_hat + jnp.flip(z, (-2, -1))[:, :, None] * b_hat
+            corr = jnp.fft.ifft2(spec.sum(axis=1))  # (chunk, 2, T, T): quarters (0, 2), (1, 3)
+            for q in range(4):  # in place, one quarter at a time: no assembly pass
+                part = corr[:, q % 2, :n_valid, :n_valid] * mod_out
+                part = jnp.rot90(jnp.real(part) if q < 2 else jnp.imag(part), q, axes=(1, 2))
+                out = jax.lax.dynamic_update_slice(out, part[None, None], (b, q, i * chunk, 0, 0))
+            return padded, out
+
+        return jax.lax.fori_loop(0, quarter // chunk, step, carry)
 
     padded = jnp.zeros((chunk, c_dim // 2, tsize, tsize), jnp.complex64)
-    out = jnp.zeros((4, quarter, n_valid, n_valid), jnp.float32)
-    _, out = jax.lax.fori_loop(0, quarter // chunk, step, (padded, out))
-    return out.reshape(num_rotations, n_valid, n_valid)
+    out = jnp.zeros((batch, 4, quarter, n_valid, n_valid), jnp.float32)
+    _, out = jax.lax.fori_loop(0, batch, sample, (padded, out))
+    return out.reshape(batch, num_rotations, n_valid, n_valid)
 
 
 @functools.partial(jax.jit, static_argnames=("num_rotations", "method", "rotation_chunk"))
@@ -305,7 +312,7 @@ def score_volume(
     _check_shapes(bev, tile)
     if method == "conv":
         return _score_conv(bev, tile, num_rotations)
-    return _score_fft(bev, tile, num_rotations, rotation_chunk)
+    return _score_fft(bev[None], tile[None], num_rotations, rotation_chunk)[0]
 
 
 @functools.partial(
@@ -324,8 +331,16 @@ def score_volume_batch(
 
     ``batch_chunk`` samples are vmapped together and the chunks run in sequence
     (``lax.map``); 0 vmaps the whole batch (accelerators). One sample at a time is fastest on
-    CPU, where a sample already fills the caches.
+    CPU, where a sample already fills the caches; the fft method then loops over the samples
+    itself and writes every volume in place (``lax.map`` would initialize each sample's volume
+    and copy it into the stacked result: ~15 % of the time at batch 8).
     """
+    if method == "fft" and batch_chunk == 1 and bevs.shape[0] > 1:
+        bevs = jnp.asarray(bevs, jnp.float32)
+        tiles = jnp.asarray(tiles, jnp.float32)
+        SolverConfig(num_rotations=num_rotations, method=method)  # validates
+        _check_shapes(bevs[0], tiles[0])
+        return _score_fft(bevs, tiles, num_rotations, rotation_chunk)
     fn = functools.partial(
         score_volume, num_rotations=num_rotations, method=method, rotation_chunk=rotation_chunk
     )
