@@ -110,8 +110,7 @@ def _rotate_channels(bev: jax.Array, terms: tuple) -> list[jax.Array]:
     one per channel (scalar gathers: the fast kind on CPU)."""
     c_dim, size, _ = bev.shape
     cu, sv, su, cv = (jnp.asarray(t) for t in terms)
-    col = cu[:, None, :] - sv[:, :, None]  # (M, S, S), u: right, v: down
-    row = su[:, None, :] + cv[:, :, None]
+    col, row = _sample_points(cu, sv, su, cv)  # (M, S, S), u: right, v: down
     col0, row0 = jnp.floor(col), jnp.floor(row)
     fc, fr = col - col0, row - row0
     col0, row0 = col0.astype(jnp.int32), row0.astype(jnp.int32)
@@ -184,38 +183,43 @@ def _half_phase(rows: int, cols: int, length: int, sign: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _sampling_tables(num_rotations: int, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The bilinear samples of the ``K/4`` turned copies, tabulated once per ``(K, S)``.
+def _sampling_tables(num_rotations: int, size: int) -> tuple[np.ndarray, tuple]:
+    """Where the ``K/4`` turned copies sample the BEV, tabulated once per ``(K, S)``.
 
-    Returns three ``(K/4, S, S)`` tables: ``base`` (int32), the flat index of each sample's
-    top-left neighbour in the BEV padded with one zero row and column before and two after
-    (``(S + 3)^2`` pixels; a neighbourhood wholly outside points at the all-zero bottom-right
-    block), and the row and column fractions ``fr``, ``fc`` (float32). The points are
-    :func:`_source_terms`' in float32, so the fft path samples where :func:`rotate_bev` does;
-    a neighbour outside the BEV reads a zero instead of being weighted by zero.
+    Returns ``base`` ``(K/4, S, S)`` int32, the flat index of each sample's top-left neighbour
+    in the BEV padded with one zero row and column before and two after (``(S + 3)^2``
+    pixels; a neighbourhood wholly outside points at the all-zero bottom-right block), and
+    :func:`_source_terms` ``(K/4, S)`` of the same angles, from which :func:`_turn_pairs`
+    forms the fractions: the points are :func:`rotate_bev`'s, in the same float32 arithmetic.
     """
-    quarter = num_rotations // 4
-    angles = geometry.rotation_angle(np.arange(quarter), num_rotations)
-    cu, sv, su, cv = _source_terms(angles, size)
-    col = cu[:, None, :] - sv[:, :, None]  # (K/4, S, S), float32 as in _rotate_channels
-    row = su[:, None, :] + cv[:, :, None]
+    angles = geometry.rotation_angle(np.arange(num_rotations // 4), num_rotations)
+    terms = _source_terms(angles, size)
+    col, row = _sample_points(*terms)
     col0, row0 = np.floor(col), np.floor(row)
-    fc, fr = col - col0, row - row0
     width = size + 3
     near = (row0 >= -1) & (row0 <= size - 1) & (col0 >= -1) & (col0 <= size - 1)
     base = np.where(near, (row0 + 1) * width + col0 + 1, (size + 1) * (width + 1))
-    return base.astype(np.int32), fr.astype(np.float32), fc.astype(np.float32)
+    return base.astype(np.int32), terms
 
 
-def _turn_pairs(pairs: jax.Array, base: jax.Array, fr: jax.Array, fc: jax.Array) -> jax.Array:
+def _sample_points(cu, sv, su, cv):
+    """Columns and rows ``(M, S, S)`` sampled by the turned copies (see :func:`_source_terms`;
+    NumPy or JAX, the same float32 arithmetic)."""
+    return cu[:, None, :] - sv[:, :, None], su[:, None, :] + cv[:, :, None]
+
+
+def _turn_pairs(pairs: jax.Array, base: jax.Array, terms: tuple) -> jax.Array:
     """Turned copies of channel pairs packed as complex images, bilinear at the
-    :func:`_sampling_tables` rows ``base, fr, fc`` ``(M, S, S)``: ``(C/2, S, S)`` complex ->
-    ``(M, C/2, S, S)``. Four scalar gathers per sample (both channels at once), inside the loop
-    over angles: written straight into the padded transform input."""
+    :func:`_sampling_tables` rows ``base`` ``(M, S, S)`` and ``terms`` ``(M, S)``:
+    ``(C/2, S, S)`` complex -> ``(M, C/2, S, S)``. Four scalar gathers per sample (both
+    channels at once); a neighbour outside the BEV reads a zero instead of being weighted by
+    zero, as :func:`_rotate_channels` does."""
     size = pairs.shape[-1]
     width = size + 3
+    col, row = _sample_points(*terms)
+    fc, fr = col - jnp.floor(col), row - jnp.floor(row)
     flat = jnp.pad(pairs, ((0, 0), (1, 2), (1, 2))).reshape(pairs.shape[0], -1)
-    gather = jax.vmap(lambda idx: flat[:, idx], in_axes=0, out_axes=0)  # (M, C/2, S, S)
+    gather = jax.vmap(lambda idx: flat[:, idx])  # (M, S, S) -> (M, C/2, S, S)
 
     def corner(offset, weight):
         return gather(base + offset) * weight[:, None]
@@ -256,7 +260,9 @@ def _score_fft(bevs, tiles, num_rotations, rotation_chunk):
     chunk = math.gcd(quarter, rotation_chunk) if rotation_chunk else quarter
     mod_in = _half_phase(size, size, tsize, -1)
     mod_out = _half_phase(n_valid, n_valid, tsize, 1)
-    tables = [t.reshape(-1, chunk, size, size) for t in _sampling_tables(num_rotations, size)]
+    base, terms = _sampling_tables(num_rotations, size)
+    base = base.reshape(-1, chunk, size, size)
+    terms = [t.reshape(-1, chunk, size) for t in terms]
 
     def sample(b, carry):
         a_hat, b_hat = _tile_spectra(tiles[b])  # (C/2, 2, T, T)
@@ -264,7 +270,8 @@ def _score_fft(bevs, tiles, num_rotations, rotation_chunk):
 
         def step(i, carry):  # chunk i of the quarter's angles
             padded, out = carry
-            turned = _turn_pairs(pairs, *(jnp.asarray(t)[i] for t in tables)) * mod_in
+            turned = _turn_pairs(pairs, jnp.asarray(base)[i], [jnp.asarray(t)[i] for t in terms])
+            turned = turned * mod_in
             # Only the template's corner changes: the zero padding of the carry stays as it is.
             padded = jax.lax.dynamic_update_slice(padded, turned, (0, 0, 0, 0))
             z = jnp.fft.fft2(padded)  # (chunk, C/2, T, T)
