@@ -339,8 +339,8 @@ def score_volume_batch(
     ``batch_chunk`` samples are vmapped together and the chunks run in sequence
     (``lax.map``); 0 vmaps the whole batch (accelerators). One sample at a time is fastest on
     CPU, where a sample already fills the caches; the fft method then loops over the samples
-    itself and writes every volume in place (``lax.map`` would initialize each sample's volume
-    and copy it into the stacked result: ~15 % of the time at batch 8).
+    itself and writes every volume in place (``lax.map`` zero-fills each sample's volume and
+    copies it into the stacked result: ~9 ms of ~90 per sample at batch 8).
     """
     if method == "fft" and batch_chunk == 1 and bevs.shape[0] > 1:
         bevs = jnp.asarray(bevs, jnp.float32)
