@@ -199,8 +199,8 @@ def test_gradients_of_fft_and_conv_agree():
         vol = solver.score_volume_batch(bev, tile, 8, method)
         return -solver.log_softmax_volume(vol, temperature=10.0)[0, 3, 5, 7]
 
-    for argnum in (0, 1):
-        fft = jax.grad(nll, argnums=argnum)(bev, tile, "fft")
-        conv = jax.grad(nll, argnums=argnum)(bev, tile, "conv")
+    ffts = jax.grad(nll, argnums=(0, 1))(bev, tile, "fft")  # to the BEV and to the tile
+    convs = jax.grad(nll, argnums=(0, 1))(bev, tile, "conv")
+    for fft, conv in zip(ffts, convs, strict=True):
         assert float(jnp.abs(conv).max()) > 1e-3
         np.testing.assert_allclose(fft, conv, atol=1e-4 * float(jnp.abs(conv).max()))
