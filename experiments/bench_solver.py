@@ -51,7 +51,7 @@ def _chunks(num_rotations: int, rotation_chunk: int) -> tuple[int, int]:
 
 def _bare_sample(bufs, t0, num_rotations: int, rotation_chunk: int):
     """One sample's FFT calls of ``solver._score_fft``. ``bufs``: inputs of the two transforms
-    of a chunk, ``(chunk, C/2, T, T)`` and ``(chunk, 2, T, T)``; ``t0 (2C, T, T)``: the tile
+    of a chunk, ``(chunk, C/2, T, T)`` and ``(chunk, 2, T, T)``; ``t0 (C, T, T)``: the tile
     side's."""
     n_chunks = _chunks(num_rotations, rotation_chunk)[1]
     t_hat = jnp.fft.fft2(t0)
@@ -101,7 +101,7 @@ def bench(batch: int, repeats: int, conv_repeats: int, num_rotations: int, seed:
         return jnp.asarray(rng.normal(size=(batch,) + shape), jnp.complex64)
 
     bufs = (normal(chunk, pairs, tsize, tsize), normal(chunk, 2, tsize, tsize))
-    t0 = normal(4 * pairs, tsize, tsize)
+    t0 = normal(2 * pairs, tsize, tsize)  # the tile side: quarters 0 and 1 of each channel pair
     runs = {
         "fft": lambda: solver.score_volume_batch(
             bevs, tiles, num_rotations, "fft", cfg.rotation_chunk, cfg.batch_chunk

@@ -234,18 +234,21 @@ def _tile_spectra(tile: jax.Array) -> tuple[jax.Array, jax.Array]:
     For channel pair ``j`` and quarter pair ``p`` (quarters ``p`` and ``p + 2``), with
     ``h_c = rot90(T_c, -p) + i rot90(T_c, -p - 2)``: ``A`` is the spectrum of
     ``(h_2j + i h_2j+1) / 2`` and ``B`` that of ``(h_2j - i h_2j+1) / 2``, on the half-bin grid.
+    Only quarters 0 and 1 are transformed (channel pairs packed, ``G``): on the half-bin grid
+    a half turn of a real image ``x`` has the spectrum ``phi * conj(X)``,
+    ``phi[k, l] = exp(2 pi i (k + l + 1) / T)``, so ``A = (G + i phi G(-f)) / 2`` and
+    ``B = (conj(G(-f)) + i phi conj(G)) / 2``.
     """
     c_dim, tsize = tile.shape[0], tile.shape[1]
-    turned = [[jnp.rot90(tile[ch], -q) for q in range(4)] for ch in range(c_dim)]
-    parts = []
-    for j in range(c_dim // 2):
-        for p in range(2):
-            h0 = turned[2 * j][p] + 1j * turned[2 * j][p + 2]
-            h1 = turned[2 * j + 1][p] + 1j * turned[2 * j + 1][p + 2]
-            parts += [(h0 + 1j * h1) / 2, (h0 - 1j * h1) / 2]
-    spec = jnp.fft.fft2(jnp.stack(parts) * _half_phase(tsize, tsize, tsize, -1))
-    spec = spec.reshape(c_dim // 2, 2, 2, tsize, tsize)
-    return spec[:, :, 0], spec[:, :, 1]
+    turned = [[jnp.rot90(tile[ch], -p) for p in range(2)] for ch in range(c_dim)]
+    pairs = range(c_dim // 2)
+    parts = [turned[2 * j][p] + 1j * turned[2 * j + 1][p] for j in pairs for p in (0, 1)]
+    g = jnp.fft.fft2(jnp.stack(parts) * _half_phase(tsize, tsize, tsize, -1))
+    g = g.reshape(c_dim // 2, 2, tsize, tsize)  # (C/2, 2, T, T)
+    g_rev = jnp.flip(g, (-2, -1))  # G(-f) on the half-bin grid
+    omega = np.exp(2j * np.pi * (np.arange(tsize) + 0.5) / tsize)
+    i_phi = (1j * omega[:, None] * omega[None, :]).astype(np.complex64)
+    return (g + i_phi * g_rev) / 2, (jnp.conj(g_rev) + i_phi * jnp.conj(g)) / 2
 
 
 def _score_fft(bevs, tiles, num_rotations, rotation_chunk):
