@@ -2,7 +2,9 @@
 
 For each batch size: milliseconds per sample of the "fft" method beside its bare-FFT reference,
 timed in alternation in one run (compile excluded; medians and minima over the repetitions),
-and of the "conv" method, with the largest absolute difference of the fft and conv volumes.
+the 1-minute load average before and after (other jobs share the cores), and, up to
+``--conv-max-batch``, of the "conv" method, with the largest difference of the fft and conv
+volumes (absolute, and relative to the largest score).
 
 The bare-FFT reference (``bare_fft_volume``) makes exactly the XLA FFT calls of the fft path's
 schedule (same transforms, shapes, counts, per-sample and per-chunk loops, one after the other)
@@ -13,6 +15,7 @@ solver costs over its FFTs alone.
 Progress goes to stderr; the last stdout line is JSON.
 
     python experiments/bench_solver.py [--batch 1 8] [--repeats 9] [--conv-repeats 1]
+                                       [--conv-max-batch 1]
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import argparse
 import functools
 import json
 import math
+import os
 import sys
 import time
 
@@ -32,9 +36,9 @@ from seglocnet_jax import geometry, solver
 
 BARE_FFT = (
     "XLA FFT calls alone: the fft path's transforms (tile fft2 once per sample; per chunk of "
-    "rotations the two forward and the two inverse 1-D passes), same shapes, counts, loops and "
-    "order, each fed its own previous output; no pads, crops, transposes, rotation, products "
-    "or output assembly"
+    "rotations one forward fft2 of the templates and one inverse fft2 of the quarter pairs), "
+    "same shapes, counts, loops and order, each fed its own previous output; no padding, "
+    "rotation, products, crops or output assembly"
 )
 
 
@@ -46,18 +50,18 @@ def _chunks(num_rotations: int, rotation_chunk: int) -> tuple[int, int]:
 
 
 def _bare_sample(bufs, t0, num_rotations: int, rotation_chunk: int):
-    """One sample's FFT calls of ``solver._score_fft``. ``bufs``: inputs of the four passes of a
-    chunk, ``(chunk, C/2, S, T)``, ``(chunk, C/2, T, T)``, ``(chunk, 2, T, T)``,
-    ``(chunk, 2, T-S+1, T)``; ``t0 (2C, T, T)``: the tile side's."""
+    """One sample's FFT calls of ``solver._score_fft``. ``bufs``: inputs of the two transforms
+    of a chunk, ``(chunk, C/2, T, T)`` and ``(chunk, 2, T, T)``; ``t0 (C, T, T)``: the tile
+    side's."""
     n_chunks = _chunks(num_rotations, rotation_chunk)[1]
     t_hat = jnp.fft.fft2(t0)
 
-    def chunk_calls(bufs, forward: bool):  # the four calls of one chunk
+    def chunk_calls(bufs, forward: bool):  # the two calls of one chunk
         # Directions alternate from chunk to chunk so that the data stay in range; a forward
         # and an inverse transform cost the same. (XLA:CPU runs independent FFTs one after the
         # other, as a profile shows, so none overlaps another.)
-        fwd, inv = (jnp.fft.fft, jnp.fft.ifft) if forward else (jnp.fft.ifft, jnp.fft.fft)
-        return tuple(fn(x, axis=-1) for fn, x in zip((fwd, fwd, inv, inv), bufs, strict=True))
+        fwd, inv = (jnp.fft.fft2, jnp.fft.ifft2) if forward else (jnp.fft.ifft2, jnp.fft.fft2)
+        return tuple(fn(x) for fn, x in zip((fwd, inv), bufs, strict=True))
 
     bufs = jax.lax.fori_loop(
         0, n_chunks // 2, lambda i, b: chunk_calls(chunk_calls(b, True), False), bufs
@@ -96,13 +100,8 @@ def bench(batch: int, repeats: int, conv_repeats: int, num_rotations: int, seed:
     def normal(*shape):
         return jnp.asarray(rng.normal(size=(batch,) + shape), jnp.complex64)
 
-    bufs = (
-        normal(chunk, pairs, size, tsize),
-        normal(chunk, pairs, tsize, tsize),
-        normal(chunk, 2, tsize, tsize),
-        normal(chunk, 2, tsize - size + 1, tsize),
-    )
-    t0 = normal(4 * pairs, tsize, tsize)
+    bufs = (normal(chunk, pairs, tsize, tsize), normal(chunk, 2, tsize, tsize))
+    t0 = normal(2 * pairs, tsize, tsize)  # the tile side: quarters 0 and 1 of each channel pair
     runs = {
         "fft": lambda: solver.score_volume_batch(
             bevs, tiles, num_rotations, "fft", cfg.rotation_chunk, cfg.batch_chunk
@@ -114,6 +113,7 @@ def bench(batch: int, repeats: int, conv_repeats: int, num_rotations: int, seed:
     print(f"batch {batch}: fft and bare_fft x{repeats} in turn ...", file=sys.stderr, flush=True)
     for fn in runs.values():
         jax.block_until_ready(fn())  # compile and warm up
+    load_before = os.getloadavg()[0]
     times = {name: [] for name in runs}
     cpu = {name: [] for name in runs}
     for rep in range(repeats):
@@ -122,6 +122,7 @@ def bench(batch: int, repeats: int, conv_repeats: int, num_rotations: int, seed:
             times[name].append(seconds)
             cpu[name].append(cpu_seconds)
     result = {"batch": batch, "num_rotations": num_rotations, "repeats": repeats}
+    result["load_1min"] = [round(load_before, 2), round(os.getloadavg()[0], 2)]
     for name, ts in times.items():
         result[f"{name}_ms_per_sample"] = round(1000 * float(np.median(ts)) / batch, 2)
         result[f"{name}_min_ms_per_sample"] = round(1000 * float(np.min(ts)) / batch, 2)
@@ -132,7 +133,8 @@ def bench(batch: int, repeats: int, conv_repeats: int, num_rotations: int, seed:
         )
     print(
         f"  fft {result['fft_ms_per_sample']} ms/sample, bare FFTs "
-        f"{result['bare_fft_ms_per_sample']}: x{result['fft_over_bare']}",
+        f"{result['bare_fft_ms_per_sample']}: x{result['fft_over_bare']} "
+        f"(cpu x{result['fft_over_bare_cpu']}; load {result['load_1min']})",
         file=sys.stderr,
         flush=True,
     )
@@ -151,6 +153,7 @@ def bench(batch: int, repeats: int, conv_repeats: int, num_rotations: int, seed:
         diff = np.abs(np.asarray(runs["fft"]()) - np.asarray(conv_volume))
         result["max_abs_diff"] = float(diff.max())
         result["max_abs_score"] = float(np.abs(np.asarray(conv_volume)).max())
+        result["max_rel_diff"] = result["max_abs_diff"] / result["max_abs_score"]
     return result
 
 
@@ -159,10 +162,16 @@ def main(argv=None) -> None:
     parser.add_argument("--batch", type=int, nargs="+", default=[1, 8])
     parser.add_argument("--repeats", type=int, default=9, help="timed runs of fft and bare_fft")
     parser.add_argument("--conv-repeats", type=int, default=1, help="timed runs of conv (0: none)")
+    parser.add_argument(
+        "--conv-max-batch", type=int, default=1, help="largest batch that also times conv (slow)"
+    )
     parser.add_argument("--num-rotations", type=int, default=geometry.NUM_ROTATIONS)
     args = parser.parse_args(argv)
     print(f"devices: {jax.devices()}", file=sys.stderr)
-    rows = [bench(b, args.repeats, args.conv_repeats, args.num_rotations) for b in args.batch]
+    rows = [
+        bench(b, args.repeats, args.conv_repeats * (b <= args.conv_max_batch), args.num_rotations)
+        for b in args.batch
+    ]
     print(
         json.dumps(
             {"device": str(jax.devices()[0].platform), "bare_fft": BARE_FFT, "results": rows}

@@ -87,6 +87,20 @@ def test_fft_matches_conv(num_rotations, size, tsize, channels, chunk):
     np.testing.assert_allclose(fft, conv, atol=2e-6 * scale)
 
 
+def test_batch_is_each_sample_alone():
+    # The fft batch loops over the samples itself (batch_chunk=1): every volume is that
+    # sample's own, also against the vmapped (0) and chunked (2) batches.
+    rng = np.random.default_rng(3)
+    bevs = rng.normal(size=(3, 2, 24, 24)).astype(np.float32)
+    tiles = (rng.random((3, 2, 48, 48)) < 0.4).astype(np.float32)
+    alone = np.stack([solver.score_volume(b, t, 8) for b, t in zip(bevs, tiles, strict=True)])
+    np.testing.assert_array_equal(solver.score_volume_batch(bevs, tiles, 8), alone)
+    scale = float(np.abs(alone).max())
+    for batch_chunk in (0, 2):
+        batch = solver.score_volume_batch(bevs, tiles, 8, batch_chunk=batch_chunk)
+        np.testing.assert_allclose(batch, alone, atol=1e-6 * scale)
+
+
 def test_quarter_turns_are_exact_rot90():
     rng = np.random.default_rng(1)
     bev = jnp.asarray(rng.normal(size=(2, 16, 16)).astype(np.float32))
@@ -185,8 +199,8 @@ def test_gradients_of_fft_and_conv_agree():
         vol = solver.score_volume_batch(bev, tile, 8, method)
         return -solver.log_softmax_volume(vol, temperature=10.0)[0, 3, 5, 7]
 
-    for argnum in (0, 1):
-        fft = jax.grad(nll, argnums=argnum)(bev, tile, "fft")
-        conv = jax.grad(nll, argnums=argnum)(bev, tile, "conv")
+    ffts = jax.grad(nll, argnums=(0, 1))(bev, tile, "fft")  # to the BEV and to the tile
+    convs = jax.grad(nll, argnums=(0, 1))(bev, tile, "conv")
+    for fft, conv in zip(ffts, convs, strict=True):
         assert float(jnp.abs(conv).max()) > 1e-3
         np.testing.assert_allclose(fft, conv, atol=1e-4 * float(jnp.abs(conv).max()))
