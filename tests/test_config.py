@@ -16,7 +16,7 @@ from seglocnet_jax.app.schema import TrainConfig, build_experiment
 from seglocnet_jax.config_util import ConfigError
 from seglocnet_jax.data import loader
 from seglocnet_jax.data.simulated.config import PrepareConfig
-from seglocnet_jax.model.config import ModelConfig
+from seglocnet_jax.model.config import TINY
 from seglocnet_jax.sequential import config as seq_config
 
 
@@ -35,7 +35,7 @@ def _plain(obj):
     [
         ("map", maps.MapConfig(), ()),
         ("loader", loader.LoaderConfig(), ()),
-        ("model", ModelConfig(), ("num_classes",)),  # null: follows map.channels
+        ("model", TINY, ("num_classes",)),  # null: follows map.channels
         ("solver", solver.SolverConfig(), ()),
         ("train", TrainConfig(), ()),
         ("eval", seq_config.EvalConfig(), ()),
