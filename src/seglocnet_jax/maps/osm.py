@@ -334,6 +334,44 @@ def _line_parts(geom) -> list[LineString]:
     return [g for g in getattr(geom, "geoms", []) if g.geom_type == "LineString" and not g.is_empty]
 
 
+def _clip_lines(raw: list, bbox) -> list:
+    """``(lon/lat coords, *rest)`` lines clipped to ``bbox``: one entry per located part."""
+    lines = shapely.clip_by_rect([LineString(c) for c, *_ in raw], *(float(v) for v in bbox))
+    return [
+        (np.asarray(part.coords), *rest)
+        for line, (_, *rest) in zip(lines, raw, strict=True)
+        for part in _line_parts(line)
+    ]
+
+
+def _clip_polygons(raw: list, bbox) -> list:
+    """``(polygon, *rest)`` entries clipped to ``bbox`` (emptied ones are dropped later)."""
+    polys = shapely.clip_by_rect([g for g, *_ in raw], *(float(v) for v in bbox))
+    return [(g, *rest) for g, (_, *rest) in zip(polys, raw, strict=True)]
+
+
+def _road(line: LineString, tags: dict, oid: int) -> Road:
+    """A projected drivable way as a :class:`Road`: one-way rules, drawn along travel."""
+    ow = tags["oneway"]
+    oneway = (
+        ow in ("yes", "1", "true", "-1")
+        or tags["junction"] == "roundabout"
+        or (tags["highway"] == "motorway" and ow != "no")
+    )
+    if ow == "-1":  # travel against the drawing direction
+        line = line.reverse()
+    lanes = _number(tags["lanes"])
+    return Road(
+        line,
+        tags["highway"],
+        None if lanes is None else int(lanes),
+        _number(tags["width"]),
+        oneway,
+        tags["name"],
+        oid,
+    )
+
+
 def load_city(
     name_or_path: str | os.PathLike,
     projection: Projection | None = None,
@@ -360,20 +398,9 @@ def load_city(
         if not (w < e and s < n):
             raise MapError(f"bbox must be (west, south, east, north) degrees, got {bbox!r}")
 
-        def clip_lines(raw):
-            lines = shapely.clip_by_rect([LineString(c) for c, *_ in raw], w, s, e, n)
-            return [
-                (np.asarray(part.coords), *rest)
-                for line, (_, *rest) in zip(lines, raw, strict=True)
-                for part in _line_parts(line)
-            ]
-
-        def clip_polygons(raw):
-            polys = shapely.clip_by_rect([g for g, *_ in raw], w, s, e, n)
-            return [(g, *rest) for g, (_, *rest) in zip(polys, raw, strict=True)]
-
-        raw_roads, raw_ways = clip_lines(raw_roads), clip_lines(raw_ways)
-        raw_buildings, raw_areas = clip_polygons(raw_buildings), clip_polygons(raw_areas)
+        raw_roads, raw_ways = _clip_lines(raw_roads, bbox), _clip_lines(raw_ways, bbox)
+        raw_buildings = _clip_polygons(raw_buildings, bbox)
+        raw_areas = _clip_polygons(raw_areas, bbox)
     cleaned = [(_polygonal(g), *rest) for g, *rest in raw_buildings]
     raw_buildings = [b for b in cleaned if b[0] is not None]
     cleaned = [(_polygonal(g), *rest) for g, *rest in raw_areas]
@@ -405,28 +432,7 @@ def load_city(
         return np.stack([x, y], axis=-1)
 
     lines = shapely.transform([LineString(c) for c, _, _ in raw_roads], project)
-    roads = []
-    for line, (_, tags, oid) in zip(lines, raw_roads, strict=True):
-        ow = tags["oneway"]
-        oneway = (
-            ow in ("yes", "1", "true", "-1")
-            or tags["junction"] == "roundabout"
-            or (tags["highway"] == "motorway" and ow != "no")
-        )
-        if ow == "-1":  # travel against the drawing direction
-            line = line.reverse()
-        lanes = _number(tags["lanes"])
-        roads.append(
-            Road(
-                line,
-                tags["highway"],
-                None if lanes is None else int(lanes),
-                _number(tags["width"]),
-                oneway,
-                tags["name"],
-                oid,
-            )
-        )
+    roads = [_road(line, tags, oid) for line, (_, tags, oid) in zip(lines, raw_roads, strict=True)]
     polys = shapely.transform([g for g, *_ in raw_buildings], project)
     buildings = tuple(
         Building(

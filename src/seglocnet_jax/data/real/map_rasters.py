@@ -223,16 +223,8 @@ def ensure_real_variants(
         if alignment.problems:
             errors.append(alignment.error())
             continue
-        todo.append(
-            (
-                city,
-                paths,
-                drivable,
-                osm,
-                dict(alignment.report(), osm=osm_path, manual=manual),
-                True,
-            )
-        )
+        report = dict(alignment.report(), osm=osm_path, manual=manual)
+        todo.append((city, paths, drivable, osm, report, True))
     if errors:
         raise errors[0] if len(errors) == 1 else AlignmentError("\n".join(map(str, errors)))
     for city, paths, drivable, osm, report, refitted in todo:
@@ -258,18 +250,8 @@ def ensure_real_variants(
             if poses is not None and city in poses and "road" in v.channels:
                 on_road = reports[city].setdefault("poses_on_road", {})
                 on_road[v.name] = drivable_fraction(raster, np.asarray(poses[city]))
-        if classes in paths and not os.path.exists(paths[classes]):
-            if not (cfg.osm or {}).get(city):
-                raise RealDataError(
-                    f"the OSM class raster of {city!r} (the neural map's input, "
-                    f"model.variant=nm) needs OSM: set dataset.convert.osm.{city} to an "
-                    ".osm.pbf / .osm extract"
-                )
-            maps.rasterize_osm_classes(osm).save(paths[classes])  # atomic
         if classes in paths:
-            variants_lib.record_osm_classes(
-                dataset_dir, {city: os.path.relpath(paths[classes], dataset_dir)}
-            )
+            _ensure_osm_classes(dataset_dir, city, paths[classes], osm, cfg)
         man = mf.read_manifest(dataset_dir)  # re-read: only our entries change
         man["alignment"] = {"config": align_cfg, "checks": cfg.align.checks(), "cities": reports}
         for v in vcfgs:
@@ -277,6 +259,20 @@ def ensure_real_variants(
             entry["files"][city] = os.path.relpath(paths[v.name], dataset_dir)
         fileio.write_json_atomic(mf.manifest_path(dataset_dir), man)
     return reports
+
+
+def _ensure_osm_classes(dataset_dir: str, city: str, path: str, osm, cfg) -> None:
+    """Draws the city's OSM class raster (the NM model's map input) at ``path`` unless it is
+    there, from the aligned ``osm``, and records it in the manifest."""
+    if not os.path.exists(path):
+        if not (cfg.osm or {}).get(city):
+            raise RealDataError(
+                f"the OSM class raster of {city!r} (the neural map's input, "
+                f"model.variant=nm) needs OSM: set dataset.convert.osm.{city} to an "
+                ".osm.pbf / .osm extract"
+            )
+        maps.rasterize_osm_classes(osm).save(path)  # atomic
+    variants_lib.record_osm_classes(dataset_dir, {city: os.path.relpath(path, dataset_dir)})
 
 
 def drivable_fraction(raster: maps.CityRaster, poses: np.ndarray) -> float:
