@@ -11,7 +11,9 @@ stopped.
 import hydra
 from omegaconf import DictConfig
 
-from seglocnet_jax.app import hydra_glue
+from seglocnet_jax.app import allocator, hydra_glue
+
+allocator.keep_freed_memory()  # before JAX starts: XLA reuses its buffers
 
 hydra_glue.register_resolvers()
 

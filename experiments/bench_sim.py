@@ -3,7 +3,9 @@
     python experiments/bench_sim.py --city helsinki --preset cpu --frames 64 [--consistency]
 
 Builds the world, drives poses, renders once to compile, then times ``Simulator.render`` in
-batches of ``--batch`` frames (as the data pipeline calls it). ``--consistency`` adds how far
+batches of ``--batch`` frames (as the data pipeline calls it), with the allocator setting of
+the apps (``app.allocator.keep_freed_memory``; ``--default-allocator``: without it, for the
+difference; also the page faults and system CPU time per frame). ``--consistency`` adds how far
 the world is from its maps: the share of elevated building LiDAR returns within 0.5 m of an OSM
 building outline, the HD-vs-SD road IoU, and the world-vs-OSM road centre offset. The last line
 is JSON.
@@ -13,7 +15,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
+import sys
 import time
+
+from seglocnet_jax.app import allocator
+
+if "--default-allocator" not in sys.argv:
+    allocator.keep_freed_memory()  # before JAX starts, as the apps do
 
 import jax
 import numpy as np
@@ -70,6 +79,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--consistency", action="store_true")
+    ap.add_argument("--default-allocator", action="store_true", help="glibc's defaults")
     args = ap.parse_args(argv)
 
     t0 = time.perf_counter()
@@ -82,11 +92,13 @@ def main(argv=None) -> dict:
     sim.render(poses[: args.batch], seed=0)  # compile + first batch
     t_first = time.perf_counter() - t0
     points = []
+    usage0 = resource.getrusage(resource.RUSAGE_SELF)
     t0 = time.perf_counter()
     for start in range(args.batch, args.batch + args.frames, args.batch):
         for s in sim.render(poses[start : start + args.batch], seed=start):
             points.append(len(s["lidar"]))
     seconds = time.perf_counter() - t0
+    usage = resource.getrusage(resource.RUSAGE_SELF)
     result = {
         "bench": "sim",
         "city": args.city,
@@ -95,6 +107,10 @@ def main(argv=None) -> dict:
         "seconds": round(seconds, 3),
         "fps": round(len(points) / seconds, 2),
         "first_batch_s": round(t_first, 2),
+        "allocator_tuned": allocator.tuned,
+        "page_faults_per_frame": round((usage.ru_minflt - usage0.ru_minflt) / len(points)),
+        "system_cpu_ms_per_frame": round(1e3 * (usage.ru_stime - usage0.ru_stime) / len(points), 1),
+        "user_cpu_ms_per_frame": round(1e3 * (usage.ru_utime - usage0.ru_utime) / len(points), 1),
         "world_build_s": round(t_world, 2),
         "images": [6, cfg.image_height, cfg.image_width],
         "lidar_points_mean": int(np.mean(points)),

@@ -6,7 +6,9 @@ settings that change the numbers (conf/evaluate.yaml). Logic: ``app.eval_run``."
 import hydra
 from omegaconf import DictConfig
 
-from seglocnet_jax.app import hydra_glue
+from seglocnet_jax.app import allocator, hydra_glue
+
+allocator.keep_freed_memory()  # before JAX starts: XLA reuses its buffers
 
 hydra_glue.register_resolvers()
 

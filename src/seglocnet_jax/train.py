@@ -4,7 +4,9 @@ resume, and print the paper-style table of the final splits. Logic: ``app.train_
 import hydra
 from omegaconf import DictConfig
 
-from seglocnet_jax.app import hydra_glue
+from seglocnet_jax.app import allocator, hydra_glue
+
+allocator.keep_freed_memory()  # before JAX starts: XLA reuses its buffers
 
 hydra_glue.register_resolvers()
 
