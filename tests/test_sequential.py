@@ -29,7 +29,7 @@ from seglocnet_jax.data.real import nuscenes as nu
 from seglocnet_jax.data.schema import BATCH_METADATA_KEYS
 from seglocnet_jax.model.config import ModelConfig
 from seglocnet_jax.sequential import config as seq_config
-from seglocnet_jax.sequential import drive_filter, tracks
+from seglocnet_jax.sequential import drive_filter, temperature, tracks
 from seglocnet_jax.training import step as step_lib
 
 K = 16
@@ -699,10 +699,15 @@ def test_streamed_temperature_fit_matches_the_in_memory_fit():
     flat = np.array([rng.choice(p.shape[1], p=row) for row in p])
     cells = np.stack(np.unravel_index(flat, (4, 9, 9)), axis=1)
     fit = sequential.TemperatureFit()
+    whole = sequential.TemperatureFit(window_points=len(temperature.TEMPERATURE_GRID))
     for i in range(0, 400, 64):  # batch by batch; padding rows weigh 0
         v, c = volumes[i : i + 64], cells[i : i + 64]
-        fit.add(np.concatenate([v, v[:3]]), np.concatenate([c, c[:3]]), [1] * len(c) + [0] * 3)
+        for f in (fit, whole):
+            f.add(np.concatenate([v, v[:3]]), np.concatenate([c, c[:3]]), [1] * len(c) + [0] * 3)
     assert fit.count == 400
+    # after the first batch, 25 of the 57 grid points; the same fit as the whole grid's
+    assert len(range(57)[fit.window]) == 2 * temperature.WINDOW_POINTS + 1 == 25
+    assert fit.result() == whole.result() and not fit.at_edge
     # the objective on a fine grid, all frames at once (float64)
     grid = np.geomspace(1.0, 16.0, 400)
     flat_v = volumes.reshape(400, -1).astype(np.float64)
@@ -718,6 +723,25 @@ def test_streamed_temperature_fit_matches_the_in_memory_fit():
     in_memory = grid[int(np.argmax(objective))]
     assert abs(fit.result() / in_memory - 1) < 0.03, (fit.result(), in_memory)
     assert abs(fit.result() / 4.0 - 1) < 0.15
+
+
+def test_a_temperature_fit_beyond_the_first_batchs_window_is_flagged_at_its_edge():
+    """The first batch peaks at T = 1, the rest (many more frames) at T = 1,000: the fit ends
+    on the window's edge (+-1.5 decades around 1) and says so, as on the grid's edge."""
+    rng = np.random.default_rng(1)
+
+    def frames(n, t):  # volumes whose GT cell is drawn from softmax(volume / t)
+        v = rng.normal(0.0, 10.0, (n, 4, 9, 9)).astype(np.float32)
+        p = np.exp(v.reshape(n, -1) / t - (v.reshape(n, -1) / t).max(1, keepdims=True))
+        flat = [rng.choice(p.shape[1], p=row / row.sum()) for row in p]
+        return v, np.stack(np.unravel_index(flat, (4, 9, 9)), axis=1)
+
+    fit = sequential.TemperatureFit()
+    fit.add(*frames(64, 1.0))
+    for _ in range(8):
+        fit.add(*frames(64, 1000.0))
+    t = fit.result()
+    assert fit.at_edge and 20.0 < t < 40.0, t  # 10**1.5 = 31.6: the window's last point
 
 
 def _readout(beliefs, log_w, pose, cfg):
@@ -908,6 +932,19 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
     ]
     arrays = np.load(os.path.join(workdir, "sequential", "drives_val.npz"))
     assert arrays["filtered"].shape == (s["frames"], 3)
+    # drives_val is the temperature drives: the candidates' pass at the chosen T made its
+    # tracks (single-frame poses too); they are what a run at that T alone makes.
+    assert s["tracked_in_temperature_pass"]
+    again = build_experiment(_tree(data_root, bev_source="gt", tracker=tracker,
+                                   temperature=s["temperature"]))  # fmt: skip
+    eval_run.run_evaluation(again, None, str(tmp_path / "fixed"))
+    fixed = np.load(os.path.join(tmp_path, "fixed", "sequential", "drives_val.npz"))
+    assert not json.load(open(tmp_path / "fixed" / "results.json"))["sequential"]["drives_val"][
+        "tracked_in_temperature_pass"
+    ]
+    assert sorted(fixed.files) == sorted(arrays.files)
+    for name in arrays.files:
+        np.testing.assert_array_equal(fixed[name], arrays[name], err_msg=name)
 
 
 def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, capsys):

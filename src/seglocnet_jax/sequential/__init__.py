@@ -32,7 +32,8 @@ batch over a log grid of ``T``, then a parabola through the best three points; n
 kept), then, with ``eval.temperature_drives``, on validation drives
 (:func:`choose_filter_temperature`: the drives tracked at that ``T`` times each of
 ``eval.temperature_scales``, all candidates in one pass with one network pass per frame, the
-best mean log posterior of the GT cell kept). The single-frame
+best mean log posterior of the GT cell kept; a tracked split that is those drives, the
+calibration split by default, takes the chosen candidate's tracks). The single-frame
 fit treats every frame as independent evidence; along a drive the frames overlap, their errors
 are correlated, and the filter fed the single-frame ``T`` is overconfident.
 
@@ -175,7 +176,7 @@ def evaluate_sequential(
     run = functools.partial(track_split, step, params, **common)
     candidates = functools.partial(track_candidates, step, params, **common)
     t_fit = time.time()
-    temperature, fit = _temperature(
+    temperature, fit, reused = _temperature(
         step, params, eval_cfg, candidates, open_split, place, num_rotations, temperature_batches
     )
     t_fit = time.time() - t_fit
@@ -186,7 +187,11 @@ def evaluate_sequential(
         t_index = time.time() - t0  # every record decoded once for its sequence metadata
         try:
             drives = split.drives[: eval_cfg.max_drives]
-            tracks, timing = run(split, drives, temperature=temperature, desc=f"sequential {name}")
+            if name in reused:  # tracked at the chosen T by the candidates' pass
+                tracks, timing = reused[name]
+            else:
+                desc = f"sequential {name}"
+                tracks, timing = run(split, drives, temperature=temperature, desc=desc)
             summary = summarize(tracks)
             _write(tracks, summary, split, eval_cfg, output_dir, channels, temperature)
         finally:
@@ -201,6 +206,7 @@ def evaluate_sequential(
             off_road=cfg.off_road,  # the on-road prior the filter ran with (nats per frame)
             temperature_fit=fit,
             temperature_fit_s=round(t_fit, 1),
+            tracked_in_temperature_pass=name in reused,
             calibration=name == eval_cfg.calibration_split,
             **per_frame,
             index_s=round(t_index, 1),
@@ -211,12 +217,16 @@ def evaluate_sequential(
 
 
 def _temperature(step, params, eval_cfg, candidates, open_split, place, num_rotations, batches_of):
-    """The filter's temperature and the record of its fit (None when given): fitted on single
-    frames of ``eval.temperature_split``, then chosen on the drives of
-    ``eval.temperature_drives`` (:func:`choose_filter_temperature`; ``candidates``: the
-    tracking of a split at several temperatures with the run's filter)."""
+    """The filter's temperature, the record of its fit (None when given) and
+    ``{split: (tracks, timings)}`` of the tracked splits whose tracks at that temperature the
+    fit already made: fitted on single frames of ``eval.temperature_split``, then chosen on the
+    drives of ``eval.temperature_drives`` (:func:`choose_filter_temperature`; ``candidates``:
+    the tracking of a split at several temperatures with the run's filter). When that split is
+    also tracked (the calibration split, by default), its candidates' pass localizes the frames
+    single-frame too and the chosen candidate's tracks are its tracks: the same filter, frames
+    and odometry as a pass of its own, which is not run."""
     if eval_cfg.temperature is not None:
-        return float(eval_cfg.temperature), None
+        return float(eval_cfg.temperature), None, {}
     batches, n = batches_of()
     temperature, info = fit_temperature(
         step,
@@ -229,13 +239,19 @@ def _temperature(step, params, eval_cfg, candidates, open_split, place, num_rota
     )
     fit = {"split": eval_cfg.temperature_split, **info, "single_frame": temperature}
     if not eval_cfg.temperature_drives:
-        return temperature, fit
+        return temperature, fit, {}
     name = eval_cfg.temperature_drives
+    tracked = name in eval_cfg.tracked_splits()
     split = open_split(name)
     try:
         drives = split.drives[: eval_cfg.max_drives]
-        temperature, table = choose_filter_temperature(
-            candidates, split, drives, base=temperature, scales=eval_cfg.temperature_scales
+        temperature, table, tracks, timing = choose_filter_temperature(
+            candidates,
+            split,
+            drives,
+            base=temperature,
+            scales=eval_cfg.temperature_scales,
+            single=tracked,
         )
     finally:
         split.close()
@@ -250,7 +266,7 @@ def _temperature(step, params, eval_cfg, candidates, open_split, place, num_rota
             flush=True,
         )
     fit["filter"] = {"split": name, "candidates": table, "at_scale_edge": edge}
-    return temperature, fit
+    return temperature, fit, {name: (tracks, timing)} if tracked else {}
 
 
 def _write(tracks, summary, split, eval_cfg, output_dir, channels, temperature) -> None:

@@ -15,6 +15,11 @@ from seglocnet_jax.evaluation import LocalizeStep
 # Temperature grid: 8 points per decade over [1e-2, 1e5] (the raw volume sums ~1e4 terms); the
 # parabola through the best three points refines it to ~1 % on smooth objectives.
 TEMPERATURE_GRID = np.geomspace(1e-2, 1e5, 57)
+# After the first batch only the grid points within this many of that batch's best one are
+# evaluated (+-1.5 decades): the objective is concave in 1 / T, so a best point inside that
+# window is the whole grid's best and the fit is the whole grid's, at 25 points per batch
+# instead of 57 (each a log-sum-exp over every cell of the batch's volumes).
+WINDOW_POINTS = 12
 
 
 @jax.jit
@@ -35,13 +40,19 @@ def _objective(volume, cells, weights, log_t):
 class TemperatureFit:
     """Streaming fit of the likelihood temperature: the ``T`` maximizing the mean
     ``log_softmax(volume / T)[gt cell]`` (the very log-likelihood the filter is fed),
-    accumulated per batch on
-    :data:`TEMPERATURE_GRID` and refined by a parabola in ``log T`` through the best three grid
-    points. Memory: one batch of volumes at a time."""
+    accumulated per batch on :data:`TEMPERATURE_GRID` and refined by a parabola in ``log T``
+    through the best three grid points. The first batch is evaluated on the whole grid, the
+    later ones on the :data:`WINDOW_POINTS` points either side of the first batch's best
+    (``window``): the objective, a sum over frames of ``v_gt / T - logsumexp(v / T)``, is
+    concave in ``1 / T``, so a best point inside the window is the whole grid's. A best point
+    on the window's edge is reported as at the edge (``at_edge``), like one on the grid's.
+    Memory: one batch of volumes at a time."""
 
-    def __init__(self, grid=TEMPERATURE_GRID):
+    def __init__(self, grid=TEMPERATURE_GRID, window_points: int = WINDOW_POINTS):
         self.log_t = np.log(np.asarray(grid, np.float64))
         self.total = np.zeros(len(self.log_t))
+        self.window_points = window_points
+        self.window = slice(0, len(self.log_t))  # the points evaluated on every batch
         self.count = 0
         self.at_edge = False
 
@@ -50,29 +61,37 @@ class TemperatureFit:
         (B,)`` (0 for rows to skip: padding, a GT outside the volume)."""
         cells = np.asarray(cells, np.int32)
         weights = np.ones(len(cells)) if weights is None else np.asarray(weights, np.float64)
+        if not (weights > 0).any():
+            return
         out = _objective(
             volume,
             jnp.asarray(cells),
             jnp.asarray(weights, jnp.float32),
-            jnp.asarray(self.log_t, jnp.float32),
+            jnp.asarray(self.log_t[self.window], jnp.float32),
         )
-        self.total += np.asarray(out, np.float64)
+        self.total[self.window] += np.asarray(out, np.float64)
+        if not self.count:  # the first batch: narrow to the window around its best point
+            best, n = int(np.argmax(self.total)), len(self.log_t)
+            self.window = slice(
+                max(best - self.window_points, 0), min(best + self.window_points + 1, n)
+            )
         self.count += int((weights > 0).sum())
 
     def result(self) -> float:
         if not self.count:
             raise ValueError("no frame to fit the temperature on")
-        f = self.total / self.count
+        log_t = self.log_t[self.window]
+        f = self.total[self.window] / self.count
         i = int(np.argmax(f))
-        # At the grid's edge the objective still rises beyond it (e.g. T -> 0 for the GT BEV,
-        # whose peak is always the GT cell): the edge is returned and flagged.
+        # At the edge the objective still rises beyond it (e.g. T -> 0 for the GT BEV, whose
+        # peak is always the GT cell): the edge is returned and flagged.
         self.at_edge = i in (0, len(f) - 1)
         if not self.at_edge:
             denom = f[i - 1] - 2 * f[i] + f[i + 1]
-            step = self.log_t[1] - self.log_t[0]
+            step = log_t[1] - log_t[0]
             offset = 0.5 * (f[i - 1] - f[i + 1]) / denom if denom < 0 else 0.0
-            return float(math.exp(self.log_t[i] + float(np.clip(offset, -1, 1)) * step))
-        return float(math.exp(self.log_t[i]))
+            return float(math.exp(log_t[i] + float(np.clip(offset, -1, 1)) * step))
+        return float(math.exp(log_t[i]))
 
 
 def gt_cells(pose_tile, num_rotations: int) -> tuple[np.ndarray, np.ndarray]:
@@ -102,23 +121,25 @@ def fit_temperature(
 
 
 def choose_filter_temperature(
-    track, split, drives, *, base: float, scales
-) -> tuple[float, list[dict]]:
+    track, split, drives, *, base: float, scales, single: bool = False
+) -> tuple[float, list[dict], list, dict]:
     """The filter's temperature, chosen on validation drives: ``drives`` (of the
     :class:`~seglocnet_jax.sequential.drives.DriveSplit` ``split``) are tracked at
     ``base * s`` for each scale ``s``, all candidates in one pass over the drives
     (``track(split, drives, temperatures=, desc=, single=)``:
     :func:`~seglocnet_jax.sequential.tracks.track_candidates` with the run's filter: one
-    network pass per frame for every candidate; no single-frame pass) and the ``T`` with the
-    best mean log posterior of the GT cell (the filter's log score, clamped at
-    ``drive_filter.LOG_P_FLOOR``: a proper score, so it rewards a posterior that is both sharp
-    and calibrated) is returned, with one row per candidate (``scale``, ``temperature``,
-    ``mean_log_p_gt``, ``tracked_pct``, ``R@1m``, ``coverage_90``)."""
+    network pass per frame for every candidate; with ``single`` also the frames'
+    single-frame poses) and the ``T`` with the best mean log posterior of the GT cell (the
+    filter's log score, clamped at ``drive_filter.LOG_P_FLOOR``: a proper score, so it rewards
+    a posterior that is both sharp and calibrated) is returned, with one row per candidate
+    (``scale``, ``temperature``, ``mean_log_p_gt``, ``tracked_pct``, ``R@1m``,
+    ``coverage_90``), the chosen candidate's tracks (those a separate run at that ``T`` gives)
+    and the pass's timings."""
     from seglocnet_jax.sequential import report  # the numbers of the tracks
 
     temps = [float(base) * float(scale) for scale in scales]
     desc = f"filter temperatures {', '.join(f'{t:.3g}' for t in temps)} ({split.name})"
-    out, _ = track(split, drives, temperatures=temps, desc=desc, single=False)
+    out, timing = track(split, drives, temperatures=temps, desc=desc, single=single)
     table = []
     for scale, t, tracks in zip(scales, temps, out, strict=True):
         s = report.summarize(tracks)
@@ -132,5 +153,5 @@ def choose_filter_temperature(
                 "coverage_90": s["coverage_90"],
             }
         )
-    best = max(table, key=lambda row: row["mean_log_p_gt"])
-    return best["temperature"], table
+    best = max(range(len(table)), key=lambda i: table[i]["mean_log_p_gt"])
+    return table[best]["temperature"], table, out[best], timing
