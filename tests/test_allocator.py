@@ -16,7 +16,7 @@ pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="gl
 # render is fed its map patches): prints the page faults of the three calls.
 _FAULTS = textwrap.dedent(
     """
-    import resource, sys
+    import resource, sys, time
     from seglocnet_jax.app import allocator
     if sys.argv[1] == "tuned":
         assert allocator.keep_freed_memory()
@@ -27,6 +27,7 @@ _FAULTS = textwrap.dedent(
     f(source.copy()).block_until_ready()
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     for _ in range(3):
+        time.sleep(0.2)  # the previous call's arrays are freed (asynchronously) by then
         f(source.copy()).block_until_ready()
     print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
     """

@@ -662,8 +662,10 @@ def test_nm_matches_the_frames_bev_features_against_each_tiles_neural_map():
     rows = np.array([1, 0])
     got = step.solve(params, step.network(params, frame), tiles, rows, volume=True)
     want = step(params, {**{k: v[rows] for k, v in frame.items()}, **tiles}, volume=True)
-    np.testing.assert_array_equal(got["volume"], want["volume"])
-    np.testing.assert_array_equal(got["pose_tile"], want["pose_tile"])
+    # Two XLA programs: equal up to float32 rounding (bit-equal on the Intel machine; on an AMD
+    # EPYC 0.9 % of the cells differ, by at most 3e-7 relative)
+    np.testing.assert_allclose(got["volume"], want["volume"], rtol=1e-5, atol=1e-3)
+    np.testing.assert_allclose(got["pose_tile"], want["pose_tile"], rtol=0, atol=1e-3)
     assert not np.array_equal(got["volume"][0], got["volume"][1])
 
 
