@@ -66,6 +66,7 @@ class SynthSource:
                     "sequence_id": f"{self.city}-{seed}",
                     "frame_index": np.int64(i),
                     "timestamp": np.float64(0.0),
+                    "lighting": "day",
                     "pose": np.asarray(pose, np.float64),
                     "images": images,
                     "intrinsics": np.tile(np.eye(3, dtype=np.float32), (self.cams, 1, 1)),

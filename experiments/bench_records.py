@@ -142,6 +142,7 @@ def converted_sample(rng: np.random.Generator, i: int, cams: int, hw: tuple[int,
         "sequence_id": "scene-0001",
         "frame_index": np.int64(i),
         "timestamp": np.float64(1.5e9 + 0.5 * i),  # seconds
+        "lighting": "day",
         "pose": pose,
         "images": np.stack([natural_image(rng, *hw) for _ in range(cams)]),
         "intrinsics": np.tile(np.eye(3, dtype=np.float32), (cams, 1, 1)),

@@ -22,6 +22,7 @@ def random_sample(
     num_points: int | None = None,
     pose=None,
     sequence: tuple[str, int, float] | None = None,
+    lighting: str = "day",
 ) -> dict:
     """A valid ``SAMPLE_KEYS`` dict with random content (images, intrinsics, LiDAR);
     ``sequence`` = ``(sequence_id, frame_index, timestamp)`` (default: its own sequence)."""
@@ -38,6 +39,7 @@ def random_sample(
         "sequence_id": seq_id,
         "frame_index": np.int64(index),
         "timestamp": np.float64(stamp),
+        "lighting": lighting,
         "pose": np.asarray(pose, np.float64),
         "images": rng.integers(0, 256, (num_cams, *hw, 3), dtype=np.uint8),
         "intrinsics": intr,

@@ -201,7 +201,7 @@ def write_nuscenes(root: str, version: str = "v1.0-mini") -> dict:
             "ego_pose",
         )
     }
-    facts = {"poses": {}, "lidar": {}, "scenes": {}}
+    facts = {"poses": {}, "lidar": {}, "scenes": {}, "lighting": {}}
     calib = {}
     for ch in ("LIDAR_TOP", *NUS_CAMERAS):
         modality = "lidar" if ch == "LIDAR_TOP" else "camera"
@@ -234,6 +234,7 @@ def write_nuscenes(root: str, version: str = "v1.0-mini") -> dict:
     for s_idx, (scene, x_start) in enumerate(NUS_SCENES.items()):
         tokens = [f"sample-{s_idx}-{i}" for i in range(NUS_SAMPLES_PER_SCENE)]
         facts["scenes"][scene] = tokens
+        facts["lighting"][scene] = "night" if s_idx else "day"
         tables["scene"].append(
             {
                 "token": f"scene-tok-{s_idx}",
@@ -242,7 +243,8 @@ def write_nuscenes(root: str, version: str = "v1.0-mini") -> dict:
                 "nbr_samples": len(tokens),
                 "first_sample_token": tokens[0],
                 "last_sample_token": tokens[-1],
-                "description": "fixture",
+                # nuScenes scene descriptions name night scenes: the second one is one
+                "description": "Night, fixture" if s_idx else "fixture, parking lot",
             }
         )
         for i, tok in enumerate(tokens):

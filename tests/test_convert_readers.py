@@ -58,8 +58,11 @@ def test_nuscenes_frames_follow_scenes_and_land_on_the_drivable_area(nus):
         assert [f.frame_index for f in mine] == list(range(len(mine)))
         assert [f.timestamp for f in mine] == [samples[f.key]["timestamp"] / 1e6 for f in mine]
         assert np.all(np.diff([f.timestamp for f in mine]) > 0)
+        # Lighting from the scene's description ("Night, ..." in the second scene).
+        assert {f.lighting for f in mine} == {facts["lighting"][scene]}
+    assert facts["lighting"] == {"scene-0061": "day", "scene-0103": "night"}
     s = check_sample(reader.load(frames[1]))
-    assert (s["sequence_id"], s["frame_index"]) == ("scene-0061", 1)
+    assert (s["sequence_id"], s["frame_index"], s["lighting"]) == ("scene-0061", 1, "day")
     assert s["frame_index"].dtype == np.int64 and s["timestamp"] == frames[1].timestamp
     # Polygon holes are kept: the plaza is drivable, its hole is not.
     assert drivable.contains(Point(200.0, 70.0)) and not drivable.contains(Point(200.0, 135.0))
@@ -147,6 +150,7 @@ def test_argoverse_frames_cities_and_drivable_area(av2):
         # Sequence metadata: the log, the frame's index among its kept sweeps, sweep time (s).
         assert f.sequence_id == os.path.basename(log_id) == f.group
         assert f.timestamp == int(t) / 1e9
+        assert f.lighting == "unknown"  # AV2 does not say
     for log_id in {f.group for f in frames}:
         mine = [f for f in frames if f.group == log_id]
         assert [f.frame_index for f in mine] == list(range(len(mine)))

@@ -180,9 +180,10 @@ def test_source_jpegs_of_the_stored_size_are_passed_through_bit_for_bit():
         records.with_source_jpegs(decoded, files[:1])
 
 
-@pytest.mark.parametrize("version", [1, 2])
+@pytest.mark.parametrize("version", [1, 2, 3])
 def test_old_records_and_datasets_are_refused_with_the_remedy(tmp_path, version):
-    """Version 1 (float32 LiDAR) and version 2 (no sequence metadata) records and datasets."""
+    """Version 1 (float32 LiDAR), version 2 (no sequence metadata) and version 3 (no lighting)
+    records and datasets."""
     rng = np.random.default_rng(6)
     rec = records.encode_sample(_with_prior(random_sample(rng)))
     payload = msgpack.unpackb(rec[len(records.MAGIC) :], raw=False)
@@ -199,8 +200,8 @@ def test_old_records_and_datasets_are_refused_with_the_remedy(tmp_path, version)
     with pytest.raises(mf.ManifestError) as err:
         mf.read_manifest(ddir)
     msg = str(err.value)
-    assert f"record_version {version}, this code reads 3" in msg
-    assert "Re-run the data preparation" in msg and "sequence metadata" in msg
+    assert f"record_version {version}, this code reads 4" in msg
+    assert "Re-run the data preparation" in msg and "lighting" in msg
     assert f"delete {ddir}" in msg and mf.manifest_path(ddir) in msg
 
 
@@ -237,6 +238,9 @@ def test_invalid_sample_is_refused_with_its_key():
     sample = random_sample(np.random.default_rng(1))  # no prior
     with pytest.raises(SchemaError, match="prior"):
         records.encode_sample(sample)
+    sample = _with_prior(random_sample(np.random.default_rng(1), lighting="twilight"))
+    with pytest.raises(SchemaError, match=r"frame 8: key 'lighting' must be one of .*'twilight'"):
+        records.encode_sample(sample, where="frame 8")
 
 
 def test_corrupt_record_names_where():

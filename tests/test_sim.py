@@ -132,12 +132,13 @@ def test_render_gives_valid_samples(samples, poses):
 
 def test_render_is_deterministic_per_seed(sim, poses, arrays, samples):
     again = sim.render_arrays(poses, seed=11)  # without diagnostics: the same shared outputs
-    assert set(again) == {"images", "lidar", "lidar_valid"}
+    assert set(again) == {"images", "lidar", "lidar_valid", "lighting"}
     for key in again:
         np.testing.assert_array_equal(arrays[key], again[key])
     for i, s in enumerate(samples):  # the samples are these arrays
         np.testing.assert_array_equal(s["images"], again["images"][i])
         np.testing.assert_array_equal(s["lidar"], again["lidar"][i][again["lidar_valid"][i]])
+        assert s["lighting"] == again["lighting"][i]
     other = sim.render_arrays(poses, seed=12)
     assert not np.array_equal(arrays["images"], other["images"])
     sim.render_arrays(poses[:1] + np.array([1.0, 0.5, 0.3]), seed=5)  # other poses, padded
@@ -368,3 +369,24 @@ def test_bad_input_is_reported(sim):
     with pytest.raises(ValueError, match="unknown sensor preset"):
         SensorConfig.preset("gpu-huge")
     assert SensorConfig.preset("paper").image_width == 800
+
+
+def test_each_frame_records_the_lighting_it_was_drawn_with(sim, poses):
+    """The record's ``lighting`` is the condition the frame was rendered under: the conditions
+    come in the configured proportions, and the night frames are the dark ones."""
+    from seglocnet_jax.sim import camera as cam
+
+    night_p, dusk_p = sim.cfg.night_prob, sim.cfg.dusk_prob
+    assert night_p > 0.05 and dusk_p > 0.05
+    drawn = [
+        cam.draw_lighting(np.random.default_rng([7, i, 0x5E]), night_p, dusk_p)["condition"]
+        for i in range(4000)
+    ]
+    assert drawn.count("night") / len(drawn) == pytest.approx(night_p, abs=0.02)
+    assert drawn.count("dusk") / len(drawn) == pytest.approx(dusk_p, abs=0.02)
+    # Frames at one pose, rendered with seed 7: frame i has the condition drawn for index i.
+    n = max(drawn.index("night"), drawn.index("day")) + 1
+    out = sim.render_arrays(np.repeat(poses[:1], n, axis=0), seed=7)
+    assert list(out["lighting"]) == drawn[:n]
+    night, day = drawn.index("night"), drawn.index("day")
+    assert out["images"][night].mean() < 0.5 * out["images"][day].mean()

@@ -12,9 +12,10 @@ from seglocnet_jax.model.config import ModelConfig
 from test_solver import blob_raster
 
 N = 6
+LIGHTING = ("day", "night", "unknown", "dusk", "night", "day")  # the frames' records say
 
 
-def _batches(raster, poses, priors, batch_size):
+def _batches(raster, poses, priors, batch_size, lighting=LIGHTING):
     """Loader-shaped host batches; the last one padded (``valid`` False) like the loader's."""
     for start in range(0, len(poses), batch_size):
         idx = list(range(start, min(start + batch_size, len(poses))))
@@ -32,6 +33,7 @@ def _batches(raster, poses, priors, batch_size):
             "pose_tile": pose_tile,
             "valid": np.asarray(valid),
             "sample_id": np.asarray([f"s{i}" for i in idx]),
+            "lighting": np.asarray([lighting[i] for i in idx]),
         }
 
 
@@ -46,7 +48,7 @@ def setup():
     return raster, poses, priors
 
 
-def _evaluate(setup, refine, batch_size):
+def _evaluate(setup, refine, batch_size, lighting=LIGHTING):
     raster, poses, priors = setup
     step = evaluation.make_localize_step(
         ModelConfig(), solver.SolverConfig(refine=refine), bev_source="gt"
@@ -64,7 +66,7 @@ def _evaluate(setup, refine, batch_size):
     res = evaluation.evaluate_split(
         step,
         None,
-        _batches(raster, poses, priors, batch_size),
+        _batches(raster, poses, priors, batch_size, lighting),
         num_batches=math.ceil(N / batch_size),
         place=place,
         desc="gt",
@@ -88,3 +90,17 @@ def test_gt_upper_bound_recovers_continuous_poses(setup):
     refined, pos_r, yaw_r = _evaluate(setup, refine=True, batch_size=8)
     assert pos_r.mean() < pos.mean() and yaw_r.mean() < yaw.mean()
     assert refined["prior"]["APE"] == pytest.approx(res["prior"]["APE"])
+
+
+def test_frames_are_also_summarized_by_their_lighting(setup):
+    """``lighting``: each known condition's frames alone, as the split's numbers are for all
+    (the padded rows left out); the frames of unknown lighting count only in the split's."""
+    res, pos, yaw = _evaluate(setup, refine=True, batch_size=4)
+    assert sorted(res["lighting"]) == ["day", "dusk", "night"]
+    for name, sub in res["lighting"].items():
+        mine = np.asarray(LIGHTING) == name
+        assert sub == metrics.summarize(pos[mine], yaw[mine])
+        assert sub["count"] == mine.sum()
+    assert res["count"] == N
+    unknown, _, _ = _evaluate(setup, refine=True, batch_size=4, lighting=("unknown",) * N)
+    assert "lighting" not in unknown

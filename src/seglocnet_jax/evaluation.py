@@ -177,9 +177,12 @@ def evaluate_split(
 ) -> dict:
     """Localizes every valid sample of the first ``num_batches`` host ``batches`` (``place``
     puts one on the devices) and returns the metric summary: the paper's keys and ``count``,
-    ``IoU_<channel>`` (percent, pooled over the split; network only) and ``prior`` (position
-    recalls / APE of answering the tile centre). Writes ``num_figures`` figures."""
+    ``IoU_<channel>`` (percent, pooled over the split; network only), ``prior`` (position
+    recalls / APE of answering the tile centre) and, when the records know their lighting,
+    ``lighting``: the same keys over each condition's frames (``{"day": {...}, "night": ...}``;
+    frames of unknown lighting are left out of it). Writes ``num_figures`` figures."""
     acc = metrics.MetricAccumulator()
+    by_lighting: dict[str, metrics.MetricAccumulator] = {}
     prior_err = []
     inter = union = None
     figures = 0
@@ -193,6 +196,12 @@ def evaluate_split(
         pred_world = solver.tile_pose_to_world(pose_tile, batch["tile_center"])
         gt_world = np.asarray(batch["pose"], np.float64)[valid]
         acc.update(pred_world[valid], gt_world)
+        lighting = np.asarray(batch["lighting"])[valid]
+        for name in np.unique(lighting):
+            here = lighting == name
+            by_lighting.setdefault(str(name), metrics.MetricAccumulator()).update(
+                pred_world[valid][here], gt_world[here]
+            )
         centre = np.asarray(batch["tile_center"], np.float64)[valid]
         prior_err.append(np.hypot(*(centre - gt_world[:, :2]).T))
         if "inter" in out:
@@ -208,6 +217,9 @@ def evaluate_split(
         for c, name in enumerate(channels):
             result[f"IoU_{name}"] = float(100.0 * inter[c] / max(union[c], 1.0))
     result["prior"] = metrics.position_summary(np.concatenate(prior_err) if prior_err else [])
+    known = sorted(k for k in by_lighting if k != "unknown")
+    if known:
+        result["lighting"] = {k: by_lighting[k].result() for k in known}
     return result
 
 

@@ -256,13 +256,17 @@ def _source(cfg: ExperimentConfig) -> str:
 
 
 def format_table(cfg: ExperimentConfig, results: dict, sequential: dict | None = None) -> str:
-    """The paper-style table of the single-frame splits (``results``) and, with ``sequential``
+    """The paper-style table of the single-frame splits (``results``; a split whose frames have
+    more than one known lighting also per lighting) and, with ``sequential``
     (``{split: summary}`` of :func:`seglocnet_jax.sequential.summarize`), the filtered and
     single-frame rows of the tracked splits (same frames) and a table of the tracking numbers."""
     parts = []
     rows = []
     for split, res in results.items():
         rows.append((f"{cfg.name} [{cfg.map.name}, {_source(cfg)}] {split}", res))
+        for lighting, sub in res.get("lighting", {}).items():
+            if len(res["lighting"]) > 1:  # the split's frames by lighting
+                rows.append((f"  {split}, {lighting} frames only ({sub['count']})", sub))
         if "prior" in res:
             rows.append((f"prior alone (tile centre, no heading) {split}", res["prior"]))
     if rows:

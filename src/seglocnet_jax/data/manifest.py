@@ -22,7 +22,7 @@ lists another file (another split's shard, or a file listed twice) is refused. M
 version 1 (before shard checksums) are refused with the remedy: prepare again; so are datasets
 whose ``record_version`` is not :data:`records.RECORD_VERSION` (version 1: float32 LiDAR, PNG
 images only; version 2: compact LiDAR, JPEG images for real data; version 3: plus each frame's
-sequence metadata).
+sequence metadata; version 4: plus its lighting).
 """
 
 from __future__ import annotations

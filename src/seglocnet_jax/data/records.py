@@ -1,6 +1,6 @@
 """Sample serialization and ArrayRecord shards: the one seam to array_record.
 
-Record format, version ``RECORD_VERSION`` = 3 (a record is one frame, bytes):
+Record format, version ``RECORD_VERSION`` = 4 (a record is one frame, bytes):
 
 * ``MAGIC`` (4 bytes, ``b"SLR1"``) then a msgpack map (``use_bin_type``) with
   ``"v"`` (int, the record version) and ``"f"`` (a map field name -> encoded field).
@@ -8,7 +8,7 @@ Record format, version ``RECORD_VERSION`` = 3 (a record is one frame, bytes):
   seeded world (x, y) prior in metres that evaluation uses). An encoded field is one of
 
   ``{"t": "str", "v": str}``
-      ``sample_id``, ``city``, ``sequence_id``.
+      ``sample_id``, ``city``, ``sequence_id``, ``lighting``.
   ``{"t": "arr", "dtype": numpy dtype str (e.g. "<f4"), "shape": [ints], "b": raw C-order bytes}``
       ``pose``, ``intrinsics``, ``cam_to_ego``, ``prior``, and the 0-d ``frame_index`` (``<i8``)
       and ``timestamp`` (``<f8``, seconds): bit-exact.
@@ -43,7 +43,7 @@ float32.
 Older versions are refused with the remedy (prepare or convert again), both per record
 (:func:`decode_sample`) and per dataset (``manifest.read_manifest``): version 1 (float32 LiDAR,
 PNG images only), version 2 (no sequence metadata: ``sequence_id``, ``frame_index``,
-``timestamp``).
+``timestamp``), version 3 (no ``lighting``).
 
 Shards are written under a temporary name and renamed when complete (:func:`fileio.atomic_path`),
 so a shard path that exists is a finished shard. Integrity: :func:`write_shard` returns the
@@ -71,9 +71,9 @@ from seglocnet_jax.data.schema import SAMPLE_KEYS, SchemaError, check_sample
 
 MAGIC = b"SLR1"
 # 2: compact LiDAR (int16 fixed point + uint8 intensity), JPEG images; 3: sequence metadata
-RECORD_VERSION = 3
+RECORD_VERSION = 4
 RECORD_CHANGES = (
-    "version 3 adds each frame's sequence metadata (sequence_id, frame_index, timestamp); "
+    "version 4 adds each frame's lighting (day, dusk, night or unknown); version 3 added each frame's sequence metadata (sequence_id, frame_index, timestamp); "
     "version 2 stored LiDAR in 1/128 m fixed point and real-data images as JPEG"
 )
 EXTRA_KEYS: dict[str, tuple[str, tuple]] = {

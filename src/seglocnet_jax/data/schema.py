@@ -35,6 +35,11 @@ import numpy as np
 # points sit at z ~ -0.34 m in real sweeps).
 EGO_HEIGHT_M: dict[str, float] = {"sim": 0.0, "nuscenes": 0.0, "av2": 0.33}
 
+# A frame's lighting: the simulator's drawn condition; nuScenes: "night" when the scene's
+# description says so, else "day" (the split the paper's night figures use); "unknown" where the
+# dataset does not say (AV2).
+LIGHTINGS = ("day", "dusk", "night", "unknown")
+
 # key -> (dtype, shape with symbolic dims). N cameras, H x W images, P LiDAR points.
 SAMPLE_KEYS: dict[str, tuple[str, tuple]] = {
     "sample_id": ("str", ()),  # unique within a dataset, stable across runs
@@ -42,6 +47,7 @@ SAMPLE_KEYS: dict[str, tuple[str, tuple]] = {
     "sequence_id": ("str", ()),  # drive / route / nuScenes scene name / AV2 log id
     "frame_index": ("int64", ()),  # >= 0: position of the frame in its sequence
     "timestamp": ("float64", ()),  # seconds (sim: distance along the route / nominal speed)
+    "lighting": ("str", ()),  # one of LIGHTINGS
     "pose": ("float64", (3,)),  # world x (m), y (m), yaw (rad, CCW from east)
     "images": ("uint8", ("N", "H", "W", 3)),  # RGB
     "intrinsics": ("float32", ("N", 3, 3)),  # pixels of the stored image size
@@ -71,6 +77,7 @@ BATCH_KEYS: dict[str, tuple[str, tuple]] = {
     "sequence_id": ("str", ("B",)),
     "frame_index": ("int64", ("B",)),
     "timestamp": ("float64", ("B",)),  # seconds
+    "lighting": ("str", ("B",)),  # LIGHTINGS
 }
 # Batch keys that stay on the host: ``training.step.device_batch`` never places them on devices.
 BATCH_METADATA_KEYS = (
@@ -82,6 +89,7 @@ BATCH_METADATA_KEYS = (
     "sequence_id",
     "frame_index",
     "timestamp",
+    "lighting",
 )
 
 
@@ -121,6 +129,10 @@ def check_sample(sample: dict, where: str = "sample") -> dict:
                 raise SchemaError(f"{where}: key {key!r} has shape {arr.shape}, expected {shape}")
         if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
             raise SchemaError(f"{where}: key {key!r} has non-finite values")
+    if sample["lighting"] not in LIGHTINGS:
+        raise SchemaError(
+            f"{where}: key 'lighting' must be one of {LIGHTINGS}, got {sample['lighting']!r}"
+        )
     if int(sample["frame_index"]) < 0:
         raise SchemaError(f"{where}: key 'frame_index' must be >= 0, got {sample['frame_index']}")
     return sample

@@ -23,7 +23,8 @@ _GRAVEL = jnp.array([0.52, 0.49, 0.44])
 
 def draw_lighting(rng: np.random.Generator, night_prob: float, dusk_prob: float) -> dict:
     """One frame's lighting (NumPy float32): ambient level, tint, per-face sun shading, night
-    flag, sky colours, haze distance (m) and lamp strength."""
+    flag, sky colours, haze distance (m) and lamp strength (the renderer's ``LIGHT_KEYS``), and
+    its ``condition``: "day", "dusk" or "night" (the record's ``lighting``)."""
     u = rng.uniform()
     night = u < night_prob
     dusk = night_prob <= u < night_prob + dusk_prob
@@ -38,6 +39,7 @@ def draw_lighting(rng: np.random.Generator, night_prob: float, dusk_prob: float)
         tint = tint * np.array([1.12, 0.95, 0.8])
     sun = rng.uniform(0, 2 * np.pi)
     return {
+        "condition": "night" if night else "dusk" if dusk else "day",
         "ambient": np.float32(ambient),
         "tint": tint.astype(np.float32),
         "face_x": np.float32(0.75 + 0.25 * abs(np.cos(sun))),

@@ -143,7 +143,8 @@ class Simulator:
 
     def render_arrays(self, poses, seed: int, *, diagnostics: bool = False) -> dict:
         """Batched NumPy outputs for ``poses`` (B, 3): ``images`` (B, N, H, W, 3) uint8,
-        ``lidar`` (B, A*beams, 4) and ``lidar_valid`` (B, A*beams) bool.
+        ``lidar`` (B, A*beams, 4), ``lidar_valid`` (B, A*beams) bool and ``lighting`` (B,) str
+        (each frame's drawn condition: day, dusk or night).
 
         ``diagnostics`` also returns what only tests and benchmarks read (computed only then):
         ``cam_points`` (B, N, H, W, 3) ego-frame hit point per pixel, ``cam_kind`` (B, N, H, W)
@@ -157,7 +158,7 @@ class Simulator:
             raise ValueError("render: poses must be finite (x m, y m, yaw rad)")
         chunk = self.cfg.chunk
         padded = np.concatenate([poses, np.repeat(poses[-1:], (-b) % chunk, axis=0)])
-        outs = []
+        outs, conditions = [], []
         for start in range(0, len(padded), chunk):
             frames = [self._patch(p) for p in padded[start : start + chunk]]
             lights = []
@@ -176,12 +177,15 @@ class Simulator:
                 keys,
             )
             outs.append(out)  # not fetched yet: the next chunk's crops overlap this one
+            conditions.extend(lt["condition"] for lt in lights)
         outs = jax.device_get(outs)
-        return {k: np.concatenate([o[k] for o in outs])[:b] for k in outs[0]}
+        arrays = {k: np.concatenate([o[k] for o in outs])[:b] for k in outs[0]}
+        return {**arrays, "lighting": np.array(conditions[:b])}
 
     def render(self, poses, seed: int, sample_ids=None, sequences=None) -> list[dict]:
         """One sample dict (keys ``sample_id``, ``city``, ``sequence_id``, ``frame_index``,
-        ``timestamp``, ``pose``, ``images``, ``intrinsics``, ``cam_to_ego``, ``lidar``:
+        ``timestamp``, ``lighting``, ``pose``, ``images``, ``intrinsics``, ``cam_to_ego``,
+        ``lidar``:
         ``data.schema.SAMPLE_KEYS``) per pose; ``sample_id`` defaults to
         ``"{city}-{seed}-{i:04d}"``. ``sequences``: one ``(sequence_id, frame_index, timestamp
         seconds)`` per pose; by default the poses are one sequence ``"{city}-{seed}"`` in their
@@ -200,6 +204,7 @@ class Simulator:
                 "sequence_id": str(seq),
                 "frame_index": np.int64(index),
                 "timestamp": np.float64(stamp),
+                "lighting": str(arrays["lighting"][i]),
                 "pose": pose.copy(),
                 "images": arrays["images"][i],
                 "intrinsics": self.intrinsics.copy(),

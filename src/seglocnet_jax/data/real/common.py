@@ -52,6 +52,8 @@ class Frame:
       frame_index: the frame's position in its sequence (0-based, consecutive over the frames
         the reader lists).
       timestamp: seconds on the dataset's clock (nuScenes sample time, AV2 sweep time).
+      lighting: ``schema.LIGHTINGS``: nuScenes "night" or "day" from the scene description,
+        AV2 "unknown".
     """
 
     key: str
@@ -62,6 +64,7 @@ class Frame:
     sequence_id: str
     frame_index: int
     timestamp: float
+    lighting: str = "unknown"
 
 
 class RealReader(Protocol):
@@ -252,6 +255,7 @@ def frame_sample(
         "sequence_id": frame.sequence_id,
         "frame_index": np.int64(frame.frame_index),
         "timestamp": np.float64(frame.timestamp),
+        "lighting": frame.lighting,
         "pose": np.asarray(frame.pose, np.float64),
         "images": np.stack(images),  # (N, H, W, 3)
         "intrinsics": np.stack(intrinsics),  # (N, 3, 3)

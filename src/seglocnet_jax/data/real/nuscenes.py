@@ -10,7 +10,9 @@ Reads the documented on-disk format directly (see ``real_common`` for why not th
 A frame is a keyframe ``sample``; its pose is the ``ego_pose`` of its LIDAR_TOP sample_data, in
 the map frame of the log's location (x east, y north, metres from the map's south-west origin).
 Its sequence is the scene (``sequence_id`` = scene name, ``frame_index`` = the keyframe's index in
-the scene's sample chain, ``timestamp`` = the sample's timestamp in microseconds / 1e6).
+the scene's sample chain, ``timestamp`` = the sample's timestamp in microseconds / 1e6). Its
+``lighting`` is "night" when the scene's description says night (as nuScenes' night subsets are
+drawn), else "day".
 LiDAR points go to that ego frame through LIDAR_TOP's ``calibrated_sensor``. Cameras fire up to
 ~40 ms apart from the LiDAR; ``cam_to_ego`` therefore maps each camera into the ego frame *at
 the LiDAR time* (camera -> ego at camera time -> map -> ego at LiDAR time), so the 6 cameras and
@@ -213,6 +215,8 @@ class NuScenesReader:
         for scene in self.split_scenes(split):
             record, location = self._scenes[scene]
             token = record["first_sample_token"]
+            description = rc.field(record, "description", f"{self._table_dir}/scene.json")
+            lighting = "night" if "night" in str(description).lower() else "day"
             index = 0
             while token:
                 if token not in self._sample:
@@ -233,6 +237,7 @@ class NuScenesReader:
                         sequence_id=scene,
                         frame_index=index,
                         timestamp=int(stamp) / 1e6,  # microseconds
+                        lighting=lighting,
                     )
                 )
                 token = self._sample[token]["next"]
