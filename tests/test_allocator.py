@@ -1,5 +1,5 @@
-"""The apps' allocator setting (app/allocator.py): large arrays freed between calls of XLA programs reuse
-their pages from call to call instead of faulting fresh ones in, and every entry point sets it
+"""The apps' allocator setting (app/allocator.py): large arrays freed between calls of XLA
+programs reuse their pages instead of faulting fresh ones in, and every entry point sets it
 before JAX starts."""
 
 from __future__ import annotations

@@ -137,7 +137,8 @@ class FrameTransform:
     """One decoded record -> one batch row (``BATCH_KEYS`` without B). The metadata
     (``schema.BATCH_METADATA_KEYS``: ``sample_id``, ``city``, ``sequence_id``, ``lighting`` str;
     ``frame_index`` int64; ``timestamp`` float64 seconds; ``valid``, ``pose``, ``tile_center``)
-    stays NumPy on the host: a batch holds them as ``(B,)`` / ``(B, k)`` arrays (strings as unicode arrays).
+    stays NumPy on the host: a batch holds them as ``(B,)`` / ``(B, k)`` arrays (strings as
+    unicode arrays).
 
     ``rasters`` maps city -> an object with ``tile(x, y) -> ((C, 256, 256), (cx, cy))`` and
     ``cut_bev(pose) -> (C, 128, 128)`` (``maps.CityRaster``). With ``train=True`` the prior is

@@ -73,7 +73,8 @@ MAGIC = b"SLR1"
 # 2: compact LiDAR (int16 fixed point + uint8 intensity), JPEG images; 3: sequence metadata
 RECORD_VERSION = 4
 RECORD_CHANGES = (
-    "version 4 adds each frame's lighting (day, dusk, night or unknown); version 3 added each frame's sequence metadata (sequence_id, frame_index, timestamp); "
+    "version 4 adds each frame's lighting (day, dusk, night or unknown); version 3 added each "
+    "frame's sequence metadata (sequence_id, frame_index, timestamp); "
     "version 2 stored LiDAR in 1/128 m fixed point and real-data images as JPEG"
 )
 EXTRA_KEYS: dict[str, tuple[str, tuple]] = {
