@@ -55,6 +55,16 @@ def test_train_evaluate_gt_and_figures(data_root, tmp_path, capsys):
     assert "| app_test [hd_road-building, tiny-seg] test |" in out  # the paper-style table
     assert "[seglocnet] time: data preparation" in out
     assert results["test"]["count"] == 4  # one batch of 4 (eval.max_batches=1)
+    # The simulator's records know their lighting: each condition's frames are also summarized.
+    by_lighting = results["test"]["lighting"]
+    assert set(by_lighting) <= {"day", "dusk", "night"}
+    assert sum(sub["count"] for sub in by_lighting.values()) == 4
+    if len(by_lighting) > 1:  # the table's rows of each condition
+        assert all(
+            f"test, {name} frames only ({sub['count']})" in out for name, sub in by_lighting.items()
+        )
+    else:  # one condition: its rows would repeat the split's
+        assert "frames only" not in out
     saved = json.load(open(os.path.join(workdir, "results.json")))
     assert saved["splits"]["test"]["APE"] == pytest.approx(results["test"]["APE"])
     assert os.listdir(os.path.join(workdir, "figures", "test"))
