@@ -54,6 +54,8 @@ def test_train_evaluate_gt_and_figures(data_root, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "| app_test [hd_road-building, tiny-seg] test |" in out  # the paper-style table
     assert "[seglocnet] time: data preparation" in out
+    timing = json.load(open(os.path.join(workdir, "results.json")))["time"]
+    assert f"(single-frame {timing['single_frame_s']:.0f} s), total" in out  # no drives here
     assert results["test"]["count"] == 4  # one batch of 4 (eval.max_batches=1)
     # The simulator's records know their lighting: each condition's frames are also summarized.
     by_lighting = results["test"]["lighting"]

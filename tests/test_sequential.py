@@ -968,6 +968,15 @@ def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, cap
     assert s["filtered"]["count"] == s["single"]["count"] == s["frames"] > 0
     assert "| seq_test [hd_road-building, tiny-seg] test |" in out
     assert "| seq_test [hd_road-building, tiny-seg] drives_val filtered |" in out
+    # The final evaluation's phases, printed and saved: single frames, then each drive split
+    # (the temperature is given: no fit to time).
+    t = saved["time"]
+    assert t["single_frame_s"] + t["sequential_s"] <= t["final_evaluation_s"]
+    assert s["seconds"] <= t["sequential_s"]
+    assert (
+        f"(single-frame {t['single_frame_s']:.0f} s, sequential {t['sequential_s']:.0f} s: "
+        f"drives_val {s['seconds']:.0f} s)" in out
+    )
     lines = [json.loads(ln) for ln in open(os.path.join(workdir, "metrics.jsonl"))]
     assert {"test", "drives_val_sequential"} <= {ln["split"] for ln in lines}
     # Frame 0 split into windows; the count per frame is saved and printed.

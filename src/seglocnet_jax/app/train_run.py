@@ -65,6 +65,7 @@ class Evaluator:
         self._loaders = {}
         self.seconds = 0.0
         self.rounds = 0
+        self.final_seconds = {}  # the final evaluation's phases (:meth:`final`)
 
     def loader(self, split: str):
         if split not in self._loaders:
@@ -164,6 +165,7 @@ class Evaluator:
         ev = self.cfg.eval
         self.verify()
         results = {}
+        t0 = time.time()
         if ev.single:
             results = self(
                 params,
@@ -172,7 +174,12 @@ class Evaluator:
                 num_figures=ev.num_figures,
                 out_dir=out_dir,
             )
-        seq = self.sequential(params, out_dir) if ev.sequential else None
+        self.final_seconds = {"single_frame_s": round(time.time() - t0, 1)}
+        seq = None
+        if ev.sequential:
+            t0 = time.time()
+            seq = self.sequential(params, out_dir)
+            self.final_seconds["sequential_s"] = round(time.time() - t0, 1)
         if logger is not None:
             for split, res in results.items():
                 logger.write(step, split, res)
@@ -302,6 +309,7 @@ def _final_evaluation(cfg, evaluate, best_dir, target, logger, step, times, t_st
         logger.close()
         timing = {k: round(v, 1) for k, v in times.items()}
         timing["final_evaluation_s"] = round(time.time() - t_final0, 1)
+        timing.update(evaluate.final_seconds)
         timing["total_s"] = round(time.time() - t_start, 1)
         extra = {"steps": step, "best_step": best_step, "time": timing}
         if seq is not None:
@@ -314,7 +322,20 @@ def _final_evaluation(cfg, evaluate, best_dir, target, logger, step, times, t_st
     print(runs.format_table(cfg, results, seq), flush=True)
     progress(
         "time: data preparation {data_preparation_s:.0f} s, training {training_s:.0f} s, "
-        "validation {validation_s:.0f} s, final evaluation {final_evaluation_s:.0f} s, "
-        "total {total_s:.0f} s".format(**timing)
+        "validation {validation_s:.0f} s, final evaluation {final_evaluation_s:.0f} s{final}, "
+        "total {total_s:.0f} s".format(final=_final_phases(timing, seq), **timing)
     )
     return results
+
+
+def _final_phases(timing: dict, seq: dict | None) -> str:
+    """`` (single-frame 55 s, sequential 730 s: temperature 388 s, drives 339 s)``: the final
+    evaluation's phases for the printed time line (the sequential part split into the
+    temperature's fit and choice and each tracked split's own pass)."""
+    parts = [f"single-frame {timing['single_frame_s']:.0f} s"]
+    if seq:
+        fit = next(iter(seq.values())).get("temperature_fit_s")
+        inner = [f"temperature {fit:.0f} s"] if fit else []
+        inner += [f"{name} {res['seconds']:.0f} s" for name, res in seq.items()]
+        parts.append(f"sequential {timing['sequential_s']:.0f} s: " + ", ".join(inner))
+    return f" ({', '.join(parts)})"
