@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 
@@ -109,6 +110,50 @@ def test_a_32x32_query_grid_is_averaged_onto_the_latent_and_a_decoder_skip():
     decoder = variables["params"]["decoder"]
     assert {"camera_skip32", "skip32", "skip64"} <= set(decoder), sorted(decoder)
     assert "camera_skip32" not in _shapes(preset("tiny"), batch)[1]["params"]["decoder"]
+
+
+@pytest.mark.parametrize("fine", [32, 64])
+def test_a_fine_camera_grid_is_a_decoder_skip_at_its_size(fine):
+    batch = synthetic.make_batch(0, 2, num_cams=3, image_hw=(32, 96), num_points=256)
+    cfg = preset("tiny", modality="camera", token_stride=8, camera_fine_grid=fine)
+    (logits, aux), variables = _shapes(cfg, batch)
+    assert logits.shape == (2, 2, 128, 128) and aux["camera_latent"].shape == (2, 16, 16, 64)
+    assert f"camera_skip{fine}" in variables["params"]["decoder"]
+    assert "fine_decoder" in variables["params"]["camera"]
+    for bad in ({"camera_fine_grid": 48}, {"camera_fine_grid": 32, "camera_queries": 32}):
+        with pytest.raises(ValueError, match="camera_fine_grid"):
+            preset("tiny", **bad)
+    with pytest.raises(ValueError, match="geometric_attention"):
+        preset("tiny", camera_fine_grid=64, geometric_attention=False)
+
+
+def test_local_cross_attention_is_dense_attention_over_each_querys_tokens():
+    """Each query reads only its k tokens: the same projections as a dense multi-head
+    attention whose logits are -inf elsewhere (and the bias added on the chosen ones)."""
+    import flax.linen as nn
+
+    from seglocnet_jax.model.transformer import LocalCrossAttention
+
+    rng = np.random.default_rng(0)
+    b, q, t, d, k = 2, 5, 9, 8, 3
+    x = [jax.numpy.asarray(rng.normal(size=s).astype(np.float32)) for s in [(b, q, d), (b, t, d)]]
+    index = jax.numpy.asarray(np.stack([[rng.permutation(t)[:k] for _ in range(q)]] * b))
+    bias = jax.numpy.asarray(rng.normal(size=(b, q, k)).astype(np.float32))
+    local = LocalCrossAttention(num_heads=2)
+    params = local.init(jax.random.key(0), x[0], x[1], x[1], index, bias)
+    got = local.apply(params, x[0], x[1], x[1], index, bias)
+    dense_bias = np.full((b, q, t), -np.inf, np.float32)
+    for i in range(b):
+        for j in range(q):
+            dense_bias[i, j, np.asarray(index[i, j])] = np.asarray(bias[i, j])
+    dense = nn.MultiHeadDotProductAttention(
+        num_heads=2,
+        attention_fn=functools.partial(nn.dot_product_attention, bias=dense_bias[:, None]),
+    )
+    p = params["params"]
+    renamed = {"params": {n: p[n] for n in ("query", "key", "value", "out")}}
+    want = dense.apply(renamed, x[0], x[1], x[1])
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-5, atol=1e-5)
 
 
 def test_depth_bins_increase_to_max_with_growing_spacing():

@@ -19,7 +19,7 @@ from seglocnet_jax import geometry
 from seglocnet_jax.model.backbone import check_image_size, make_backbone, normalize_images
 from seglocnet_jax.model.config import LATENT_SIZE, PERCEPTION_RANGE, ModelConfig
 from seglocnet_jax.model.layers import MLP, upsample2x
-from seglocnet_jax.model.transformer import TransformerDecoder
+from seglocnet_jax.model.transformer import LocalDecoderLayer, TransformerDecoder
 
 
 def depth_bins(num: int, depth_min: float, depth_max: float) -> np.ndarray:
@@ -80,6 +80,7 @@ def normalize_ego_points(points: jax.Array, z_range: tuple[float, float]) -> jax
 
 PILLAR_HEIGHTS = (0.0, 1.0, 2.0, 3.0)  # ego z (m, ground = 0) of the points of a query's pillar
 BIAS_FLOOR = -8.0  # attention logit bias of a token no pillar point projects near
+FINE_TOKENS = 16  # tokens each cell of the fine query grid reads (model.camera_fine_grid)
 
 
 def geometric_attention_bias(
@@ -118,11 +119,15 @@ def geometric_attention_bias(
     z = cam[..., 2]
     pix = jnp.einsum("bnij,bnqhj->bnqhi", intrinsics, cam)
     uv = pix[..., :2] / jnp.maximum(z, 1e-3)[..., None]  # (B, N, Q, H, 2) image pixels
-    centres = jnp.asarray(feature_pixel_centers(*feat_hw, stride))  # (h, w, 2)
-    diff = (uv[..., None, None, :] - centres) / stride  # (B, N, Q, H, h, w, 2)
-    d2 = jnp.sum(diff * diff, axis=-1)
-    d2 = jnp.where((z > 0.1)[..., None, None], d2, jnp.inf)
-    bias = jnp.maximum(-0.5 * jnp.min(d2, axis=3), BIAS_FLOOR)  # (B, N, Q, h, w)
+    centres = feature_pixel_centers(*feat_hw, stride)  # (h, w, 2)
+    du = (uv[..., :1] - jnp.asarray(centres[0, :, 0])) / stride  # (B, N, Q, H, w)
+    dv = (uv[..., 1:] - jnp.asarray(centres[:, 0, 1])) / stride  # (B, N, Q, H, h)
+    d2 = None
+    for i in range(len(PILLAR_HEIGHTS)):  # one (B, N, Q, h, w) array per height, no reduction
+        di = du[:, :, :, i, None, :] ** 2 + dv[:, :, :, i, :, None] ** 2
+        di = jnp.where(z[:, :, :, i, None, None] > 0.1, di, jnp.inf)
+        d2 = di if d2 is None else jnp.minimum(d2, di)
+    bias = jnp.maximum(-0.5 * d2, BIAS_FLOOR)  # (B, N, Q, h, w)
     b, n, q = bias.shape[:3]
     return jnp.moveaxis(bias, 2, 1).reshape(b, q, n * feat_hw[0] * feat_hw[1])
 
@@ -196,6 +201,8 @@ class CameraEncoder(nn.Module):
         )(q, q_pos, feats, t_pos, deterministic, bias)
         grid = q.reshape(b, size, size, d)  # (B, size, size, D)
         aux = {"camera_features": x.reshape(b, n, fh, fw, d)}
+        if cfg.camera_fine_grid:  # the decoder's camera skip (the latent stays the 16x16 grid)
+            aux["skip"] = self._fine_grid(grid, feats, t_pos, intrinsics, cam_to_ego, (fh, fw))
         if size == LATENT_SIZE:
             return grid, aux
         # A finer query grid: its cells averaged onto the 16x16 latent for the fusion, the grid
@@ -204,6 +211,33 @@ class CameraEncoder(nn.Module):
         latent = grid.reshape(b, LATENT_SIZE, f, LATENT_SIZE, f, d).mean(axis=(2, 4))
         aux["skip"] = grid
         return latent, aux
+
+    def _fine_grid(self, grid, feats, t_pos, intrinsics, cam_to_ego, feat_hw) -> jax.Array:
+        """The ``camera_fine_grid`` refinement: each fine cell starts from its coarse query's
+        output plus its own position embedding and reads the :data:`FINE_TOKENS` tokens its
+        pillar projects nearest to (:func:`geometric_attention_bias`, top-k), biased the same
+        way: ``(B, fine, fine, D)``."""
+        cfg = self.cfg
+        b, size, _, d = grid.shape
+        fine = cfg.camera_fine_grid
+        f = fine // size
+        coarse = jnp.repeat(jnp.repeat(grid, f, axis=1), f, axis=2).reshape(b, fine * fine, d)
+        ref = jnp.asarray(bev_reference_points(fine)).reshape(-1, 2)
+        if cfg.position_frequencies:
+            ref = fourier_features(ref, cfg.position_frequencies)
+        q_pos = MLP((d, d), name="fine_query_embedding")(ref)[None]
+        bias = geometric_attention_bias(
+            intrinsics.astype(jnp.float32),
+            cam_to_ego.astype(jnp.float32),
+            feat_hw,
+            cfg.token_stride,
+            fine,
+        )  # (B, fine^2, T)
+        top, index = jax.lax.top_k(bias, min(FINE_TOKENS, bias.shape[-1]))
+        refined = LocalDecoderLayer(cfg.num_heads, cfg.ffn_dim, name="fine_decoder")(
+            coarse, jnp.broadcast_to(q_pos, coarse.shape), feats, t_pos, index, top
+        )
+        return refined.reshape(b, fine, fine, d)
 
 
 def camera_skip_key(size: int) -> str:

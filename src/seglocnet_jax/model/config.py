@@ -48,6 +48,11 @@ class ModelConfig:
       camera_queries: the BEV query grid is ``camera_queries x camera_queries`` over +-32 m:
         16 (the latent's 4 m cells) or 32 (2 m cells, averaged onto the latent for the fusion
         and fed to the decoder at 32x32 as a skip).
+      camera_fine_grid: 0 (none), 32 or 64: a finer grid of camera cells, each starting from
+        its coarse query's output and reading only the ``camera.FINE_TOKENS`` tokens its
+        pillar projects nearest to (one cross-attention layer, ``transformer.LocalDecoderLayer``);
+        fed to the decoder at its size as a skip. Needs ``camera_queries=16`` and
+        ``geometric_attention``.
       transformer_layers: DETR-style decoder layers (self-attn, cross-attn, FFN).
       num_heads: attention heads; ffn_dim: FFN hidden width; dropout: in attention and FFN.
       z_min, z_max: LiDAR voxel z range (m, ego frame); voxel_size: metres (x, y, z).
@@ -82,6 +87,7 @@ class ModelConfig:
     token_stride: int = 16
     geometric_attention: bool = False
     camera_queries: int = 16
+    camera_fine_grid: int = 0
     transformer_layers: int = 2
     num_heads: int = 4
     ffn_dim: int = 128
@@ -143,6 +149,16 @@ class ModelConfig:
             bad("token_stride", "8 or 16")
         if self.camera_queries not in (LATENT_SIZE, 2 * LATENT_SIZE):
             bad("camera_queries", f"{LATENT_SIZE} or {2 * LATENT_SIZE}")
+        if self.camera_fine_grid not in (0, 2 * LATENT_SIZE, 4 * LATENT_SIZE):
+            bad("camera_fine_grid", f"0, {2 * LATENT_SIZE} or {4 * LATENT_SIZE}")
+        if self.camera_fine_grid and (
+            self.camera_queries != LATENT_SIZE or not self.geometric_attention
+        ):
+            bad(
+                "camera_fine_grid",
+                f"0 unless model.camera_queries={LATENT_SIZE} and model.geometric_attention "
+                "(its cells read the tokens their pillars project nearest to)",
+            )
         if self.position_frequencies < 0:
             bad("position_frequencies", ">= 0")
         if not 0.0 <= self.dropout < 1.0:

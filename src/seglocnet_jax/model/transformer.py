@@ -11,6 +11,7 @@ import functools
 
 import flax.linen as nn
 import jax
+import jax.numpy as jnp
 
 
 class DecoderLayer(nn.Module):
@@ -54,4 +55,48 @@ class TransformerDecoder(nn.Module):
             q = DecoderLayer(self.num_heads, self.ffn_dim, self.dropout)(
                 q, q_pos, tokens, t_pos, deterministic, bias
             )
+        return nn.LayerNorm()(q)
+
+
+class LocalCrossAttention(nn.Module):
+    """Multi-head cross-attention of each query to its own ``k`` tokens only.
+
+    ``q`` ``(B, Q, D)``; ``keys``, ``values`` ``(B, T, D)``; ``index`` ``(B, Q, k)`` int, the
+    tokens each query reads; ``bias`` ``(B, Q, k)`` added to every head's logits. The
+    projections are those of a dense attention; only the ``k`` gathered tokens enter the
+    softmax, so the cost grows with ``Q * k``, not ``Q * T``."""
+
+    num_heads: int
+
+    @nn.compact
+    def __call__(self, q, keys, values, index, bias):
+        d = q.shape[-1]
+        heads, dh = self.num_heads, q.shape[-1] // self.num_heads
+        qp = nn.DenseGeneral((heads, dh), name="query")(q)  # (B, Q, h, dh)
+        kp = nn.DenseGeneral((heads, dh), name="key")(keys)  # (B, T, h, dh)
+        vp = nn.DenseGeneral((heads, dh), name="value")(values)
+        gather = jax.vmap(lambda x, i: x[i])  # per sample: (T, h, dh), (Q, k) -> (Q, k, h, dh)
+        kg, vg = gather(kp, index), gather(vp, index)
+        logits = jnp.einsum("bqhd,bqkhd->bqhk", qp, kg) / jnp.sqrt(dh).astype(qp.dtype)
+        weights = jax.nn.softmax(logits + bias[:, :, None, :], axis=-1)
+        out = jnp.einsum("bqhk,bqkhd->bqhd", weights, vg)
+        return nn.DenseGeneral(d, axis=(-2, -1), name="out")(out)
+
+
+class LocalDecoderLayer(nn.Module):
+    """Pre-norm cross-attention to each query's own tokens (:class:`LocalCrossAttention`),
+    FFN, final LayerNorm: the fine query grid's refinement (no self-attention: the queries
+    already carry their coarse query's context)."""
+
+    num_heads: int
+    ffn_dim: int
+
+    @nn.compact
+    def __call__(self, q, q_pos, tokens, t_pos, index, bias) -> jax.Array:
+        h = nn.LayerNorm()(q)
+        q = q + LocalCrossAttention(self.num_heads, name="cross_attn")(
+            h + q_pos, tokens + t_pos, tokens, index, bias
+        )
+        h = nn.Dense(self.ffn_dim)(nn.LayerNorm()(q))
+        q = q + nn.Dense(q.shape[-1])(nn.gelu(h))
         return nn.LayerNorm()(q)
