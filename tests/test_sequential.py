@@ -970,9 +970,9 @@ def test_the_train_app_reports_single_frames_and_drives(data_root, tmp_path, cap
     assert "| seq_test [hd_road-building, tiny-seg] drives_val filtered |" in out
     # The final evaluation's phases, printed and saved: single frames, then each drive split
     # (the temperature is given: no fit to time).
-    t = saved["time"]
-    assert t["single_frame_s"] + t["sequential_s"] <= t["final_evaluation_s"]
-    assert s["seconds"] <= t["sequential_s"]
+    t = saved["time"]  # each figure rounded to 0.1 s: nested phases may differ by that much
+    assert t["single_frame_s"] + t["sequential_s"] <= t["final_evaluation_s"] + 0.2
+    assert s["seconds"] <= t["sequential_s"] + 0.1
     assert (
         f"(single-frame {t['single_frame_s']:.0f} s, sequential {t['sequential_s']:.0f} s: "
         f"drives_val {s['seconds']:.0f} s)" in out
