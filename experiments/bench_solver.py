@@ -12,10 +12,13 @@ and nothing else: each call transforms its own previous output, so there are no 
 transposes, BEV rotation, spectrum products or output assembly. ``fft_over_bare`` (ratio of the
 medians; ``fft_over_bare_cpu`` of the process CPU times, steadier on shared cores) is what the
 solver costs over its FFTs alone.
+The process runs with the allocator setting of the apps that call the solver (train, evaluate:
+``app.allocator.keep_freed_memory``, so that each call's 17 MB volume per sample reuses freed
+pages instead of faulting fresh ones in); ``--default-allocator`` times it with glibc's defaults.
 Progress goes to stderr; the last stdout line is JSON.
 
     python experiments/bench_solver.py [--batch 1 8] [--repeats 9] [--conv-repeats 1]
-                                       [--conv-max-batch 1]
+                                       [--conv-max-batch 1] [--default-allocator]
 """
 
 from __future__ import annotations
@@ -27,6 +30,11 @@ import math
 import os
 import sys
 import time
+
+from seglocnet_jax.app import allocator
+
+if "--default-allocator" not in sys.argv:
+    allocator.keep_freed_memory()  # before JAX starts, as the apps do
 
 import jax
 import jax.numpy as jnp
@@ -166,6 +174,9 @@ def main(argv=None) -> None:
         "--conv-max-batch", type=int, default=1, help="largest batch that also times conv (slow)"
     )
     parser.add_argument("--num-rotations", type=int, default=geometry.NUM_ROTATIONS)
+    parser.add_argument(
+        "--default-allocator", action="store_true", help="glibc's defaults, not the apps' setting"
+    )
     args = parser.parse_args(argv)
     print(f"devices: {jax.devices()}", file=sys.stderr)
     rows = [
@@ -174,7 +185,12 @@ def main(argv=None) -> None:
     ]
     print(
         json.dumps(
-            {"device": str(jax.devices()[0].platform), "bare_fft": BARE_FFT, "results": rows}
+            {
+                "device": str(jax.devices()[0].platform),
+                "allocator": "apps' setting" if allocator.tuned else "default",
+                "bare_fft": BARE_FFT,
+                "results": rows,
+            }
         )
     )
 
