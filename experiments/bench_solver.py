@@ -15,20 +15,28 @@ solver costs over its FFTs alone.
 The process runs with the allocator setting of the apps that call the solver (train, evaluate:
 ``app.allocator.keep_freed_memory``, so that each call's 17 MB volume per sample reuses freed
 pages instead of faulting fresh ones in); ``--default-allocator`` times it with glibc's defaults.
+``--profile`` adds where the time goes (``profile``: JAX's profiler over a few more runs of each,
+milliseconds per sample in XLA's FFT calls, in the other XLA ops, the largest of those by name,
+and the run's wall time): the gap between the fft path and the bare reference split into FFT
+calls that run slower inside the solver and the solver's own elementwise work.
 Progress goes to stderr; the last stdout line is JSON.
 
     python experiments/bench_solver.py [--batch 1 8] [--repeats 9] [--conv-repeats 1]
-                                       [--conv-max-batch 1] [--default-allocator]
+                                       [--conv-max-batch 1] [--default-allocator] [--profile]
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import functools
+import glob
+import gzip
 import json
 import math
 import os
 import sys
+import tempfile
 import time
 
 from seglocnet_jax.app import allocator
@@ -96,7 +104,49 @@ def _timed(fn) -> tuple[float, object, float]:
     return time.perf_counter() - t0, out, time.process_time() - c0
 
 
-def bench(batch: int, repeats: int, conv_repeats: int, num_rotations: int, seed: int = 0) -> dict:
+def op_profile(fn, batch: int, runs: int = 5, top: int = 6) -> dict:
+    """Where ``fn``'s time goes, from a JAX profiler trace of ``runs`` calls (after warm-up):
+    ms per sample in XLA's FFT calls (ops named ``fft*``), in every other XLA op (fusions,
+    copies, broadcasts; not the loops that contain them), the ``top`` largest of those by
+    XLA's name, and the wall time of the traced calls (with the profiler's own cost)."""
+    jax.block_until_ready(fn())
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        with jax.profiler.trace(tmp, create_perfetto_trace=True):
+            for _ in range(runs):
+                jax.block_until_ready(fn())
+        wall = time.perf_counter() - t0
+        (path,) = glob.glob(os.path.join(tmp, "**", "*.trace.json.gz"), recursive=True)
+        with gzip.open(path) as f:
+            events = json.load(f)["traceEvents"]
+    ops: dict[str, float] = collections.defaultdict(float)
+    for event in events:
+        name = event.get("name", "")
+        # XLA's ops are named like "fft.3" or "add_bitcast_fusion"; the runtime's own events
+        # ("ThunkExecutor::Execute", "$api.py:...") and loops ("while.5") contain other events.
+        if event.get("ph") != "X" or name.startswith(("$", "while", "end:")) or ":" in name:
+            continue
+        if "." in name or "fusion" in name or name.startswith(("wrapped_", "copy")):
+            ops[name] += event["dur"] / 1000 / runs / batch  # us -> ms per sample
+    fft = sum(ms for name, ms in ops.items() if name.startswith("fft"))
+    other = {name: ms for name, ms in ops.items() if not name.startswith("fft")}
+    largest = sorted(other.items(), key=lambda item: -item[1])[:top]
+    return {
+        "fft_calls_ms_per_sample": round(fft, 2),
+        "other_ops_ms_per_sample": round(sum(other.values()), 2),
+        "largest_other_ops": {name: round(ms, 2) for name, ms in largest},
+        "traced_wall_ms_per_sample": round(1000 * wall / runs / batch, 2),
+    }
+
+
+def bench(
+    batch: int,
+    repeats: int,
+    conv_repeats: int,
+    num_rotations: int,
+    seed: int = 0,
+    profile: bool = False,
+) -> dict:
     cfg = solver.SolverConfig(num_rotations=num_rotations)
     rng = np.random.default_rng(seed)
     c_dim, size, tsize = 2, geometry.BEV_SIZE, geometry.TILE_SIZE
@@ -146,6 +196,10 @@ def bench(batch: int, repeats: int, conv_repeats: int, num_rotations: int, seed:
         file=sys.stderr,
         flush=True,
     )
+    if profile:
+        print(f"batch {batch}: profiling fft and bare_fft ...", file=sys.stderr, flush=True)
+        result["profile"] = {name: op_profile(fn, batch) for name, fn in runs.items()}
+        print(f"  {json.dumps(result['profile'])}", file=sys.stderr, flush=True)
     if conv_repeats:
         print(f"batch {batch}: conv x{conv_repeats} ...", file=sys.stderr, flush=True)
         conv = functools.partial(solver.score_volume_batch, bevs, tiles, num_rotations, "conv")
@@ -177,10 +231,19 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--default-allocator", action="store_true", help="glibc's defaults, not the apps' setting"
     )
+    parser.add_argument(
+        "--profile", action="store_true", help="also split each run's time by XLA op (profiler)"
+    )
     args = parser.parse_args(argv)
     print(f"devices: {jax.devices()}", file=sys.stderr)
     rows = [
-        bench(b, args.repeats, args.conv_repeats * (b <= args.conv_max_batch), args.num_rotations)
+        bench(
+            b,
+            args.repeats,
+            args.conv_repeats * (b <= args.conv_max_batch),
+            args.num_rotations,
+            profile=args.profile,
+        )
         for b in args.batch
     ]
     print(
