@@ -5,8 +5,10 @@ overfits a few synthetic samples."""
 from __future__ import annotations
 
 import dataclasses
+import threading
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
@@ -55,6 +57,46 @@ def test_network_and_solver_compile_once_and_are_deterministic(tiny_params):
     assert a["probs"].shape == (2, 2, 128, 128) and a["likelihood"].shape == (2, 129, 129)
     assert a["pose_tile"].shape == (2, 3) and a["inter"].shape == (2, 2)
     assert not np.array_equal(a["probs"], c["probs"])
+
+
+def test_the_solver_threads_give_the_one_program_outputs(tiny_params, monkeypatch):
+    """On CPU the localize step solves a batch's rows in parts side by side (a host thread per
+    core): the poses, IoU counts, figure maps and volumes equal those of one program run on
+    the whole batch, for uneven parts, for gathered BEV rows and for the first (compiling)
+    call as for later ones."""
+    solver_cfg = solver.SolverConfig(num_rotations=16)
+    step = evaluation.make_localize_step(TINY, solver_cfg, "model")
+    assert step.threads == evaluation.solver_threads() >= 1
+    batch = _batch(3, size=3)
+    bev = step.network(tiny_params, batch)
+    rows = np.array([2, 0, 2, 1, 1])
+    tiles = {"tile": jnp.concatenate([batch["tile"], batch["tile"][::-1][:2]])}
+
+    names = []
+    run = evaluation.LocalizeStep._run
+
+    def recorded(*args):
+        names.append(threading.current_thread().name)
+        return run(*args)
+
+    monkeypatch.setattr(evaluation.LocalizeStep, "_run", staticmethod(recorded))
+
+    def outputs(threads):
+        step.threads = threads
+        out = [step(tiny_params, batch, figures=True), step(tiny_params, batch, volume=True)]
+        out.append(step.solve(tiny_params, bev, tiles, rows, volume=True))
+        return jax.device_get(out)
+
+    try:
+        one = outputs(1)
+        for _ in range(2):  # compiling the parts, then running them in threads
+            for a, b in zip(one, outputs(3), strict=True):
+                assert a.keys() == b.keys()
+                for k in a:
+                    np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    finally:
+        step.threads = evaluation.solver_threads()
+    assert any(name.startswith("solver") for name in names)  # the later calls: in threads
 
 
 def _groups(grads):

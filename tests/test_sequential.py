@@ -170,7 +170,7 @@ def test_flat_likelihood_follows_dead_reckoning_not_the_truth():
     tile_centres = []
 
     def step(params, batch, figures=False, volume=False):
-        b = len(batch["pose"])
+        b = len(batch["tile"])
         out = {"pose_tile": jnp.zeros((b, 3))}
         if volume:
             tile_centres.append(np.asarray(batch["tile_center"][0]))
@@ -205,7 +205,7 @@ def _peaks_step(peaks_of, sizes=None):
     (``sizes``: the window sizes it was asked for)."""
 
     def step(params, batch, figures=False, volume=False):
-        b = len(batch["pose"])
+        b = len(batch["tile"])
         out = {"pose_tile": jnp.zeros((b, 3))}
         if volume:
             n = batch["tile"].shape[-1] - geometry.BEV_SIZE + 1
@@ -280,7 +280,7 @@ def test_temperature_candidates_in_one_pass_are_the_separate_runs():
     noise = rng.normal(0.0, 3.0, (8, K, 129, 129)).astype(np.float32)
 
     def peaks(params, batch, figures, volume):  # the truth's peak on a noise floor per frame
-        b = len(batch["pose"])
+        b = len(batch["tile"])
         out = {"pose_tile": jnp.zeros((b, 3))}
         if volume:
             vol = noise[np.asarray(batch["frame_index"]) % 8].copy()
@@ -297,7 +297,7 @@ def test_temperature_candidates_in_one_pass_are_the_separate_runs():
     solved = []
 
     def counted(params, batch, figures, volume):
-        solved.append(len(batch["pose"]))
+        solved.append(len(batch["tile"]))
         return peaks(params, batch, figures, volume)
 
     together, _ = sequential.track_candidates(
@@ -314,6 +314,38 @@ def test_temperature_candidates_in_one_pass_are_the_separate_runs():
     # the candidates' coinciding windows share one volume: fewer solved tiles than 3 runs
     assert one_pass < sum(solved) - one_pass, (one_pass, sum(solved) - one_pass)
 
+
+def test_a_drive_left_in_flight_alone_is_solved_alone():
+    """Drives of different lengths in lockstep: once the short one is done, the long one's
+    prior tile and window tiles are solved without rows padded up to the batch size (the
+    network's pass keeps its static batch)."""
+    long = _straight_drive(n=5)
+    short = dataclasses.replace(
+        long, sequence_id="drive-1", records=long.records[:2], frame_index=long.frame_index[:2],
+        timestamps=long.timestamps[:2], poses=long.poses[:2], priors=long.priors[:2],
+    )  # fmt: skip
+    ev = sequential.EvalConfig(
+        odometry=_EXACT_ODOMETRY, tracker=sequential.TrackerSettings(hypotheses=1, off_road=0.0)
+    )
+    cfg = sequential.tracker_config(ev, K)
+    calls = []
+
+    def counted(params, batch, figures, volume):
+        calls.append(("volume" if volume else "pose", len(batch["tile"])))
+        b = len(batch["tile"])
+        out = {"pose_tile": jnp.zeros((b, 3))}
+        if volume:
+            out["volume"] = jnp.zeros((b, K, 129, 129))
+        return out
+
+    (a, b), _ = sequential.track_split(
+        _FakeStep(counted), None, _FakeSplit(_raster(2), long), [long, short], cfg=cfg,
+        odometry_cfg=_EXACT_ODOMETRY, odometry_seed=0, temperature=1.0, batch_size=2,
+        place=lambda b: b, desc="t",
+    )  # fmt: skip
+    assert [len(a.filtered), len(b.filtered)] == [5, 2]
+    # a prior tile and a window tile per drive in flight: 2 frames of both, then 3 of one
+    assert calls == [("pose", 2), ("volume", 2)] * 2 + [("pose", 1), ("volume", 1)] * 3
 
 def test_each_window_of_the_bank_learns_the_odometry_scale_of_its_own_track():
     """Frames 0-9 peak at the truth (20) and, more strongly (25), at a look-alike 48 m away

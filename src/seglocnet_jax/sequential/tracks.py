@@ -119,13 +119,28 @@ def _window_row(row: dict, tile, centre, nm_rasters=None) -> dict:
     return out
 
 
-def _volumes(step, params, place, bev, rows, owners, roads, temps, *, off_road, batch_size) -> list:
+def _padded(chunk: list, devices: int) -> list:
+    """``chunk`` (row indices) padded with its first row to a multiple of ``devices`` (those
+    that ``place`` shards a batch over; on one device: as it is, no row computed for nothing)."""
+    return chunk + [chunk[0]] * (-len(chunk) % devices)
+
+
+def _devices(batch: dict) -> int:
+    """The devices a placed batch is sharded over (1 for host arrays)."""
+    sharding = getattr(batch["tile"], "sharding", None)
+    return len(sharding.device_set) if sharding is not None else 1
+
+
+def _volumes(
+    step, params, place, bev, rows, owners, roads, temps, *, off_road, batch_size, devices
+) -> list:
     """The log-likelihood ``(K, N, N)`` of each window row: the solver's volume program on the
     frame's BEV (``bev``, row ``owners[i]`` for window row ``i``: the network does not run
-    again) in padded batches of ``batch_size`` (static shapes: the first row repeated), over
-    the row's temperature ``temps[i]``; with ``roads`` (the rows' road channels, or None) plus
-    the on-road prior. Rows of one frame with the same tile centre (the temperature
-    candidates' windows often coincide) share one solver volume: it does not depend on T."""
+    again) in batches of up to ``batch_size`` (:func:`_padded` to ``devices``; each size
+    compiles once), over the row's temperature ``temps[i]``; with ``roads`` (the rows' road
+    channels, or None) plus the on-road prior. Rows of one frame with the same tile centre
+    (the temperature candidates' windows often coincide) share one solver volume: it does not
+    depend on T."""
     key_of = [
         (o, np.asarray(r["tile_center"], np.float64).tobytes())
         for o, r in zip(owners, rows, strict=True)
@@ -137,17 +152,16 @@ def _volumes(step, params, place, bev, rows, owners, roads, temps, *, off_road, 
     vols = []
     for start in range(0, len(unique), batch_size):
         chunk = unique[start : start + batch_size]
-        pad = batch_size - len(chunk)
-        batch = place(_stack([rows[i] for i in chunk + [chunk[0]] * pad]))
-        index = [owners[i] for i in chunk + [chunk[0]] * pad]
+        take = _padded(chunk, devices)
+        batch = place(_stack([rows[i] for i in take]))
+        index = [owners[i] for i in take]
         vol = step.solve(params, bev, batch, np.asarray(index), volume=True)["volume"]
         vols.extend(vol[i] for i in range(len(chunk)))
     slot = {key: n for n, key in enumerate(first)}
     out = []
     for start in range(0, len(rows), batch_size):
         chunk = list(range(start, min(start + batch_size, len(rows))))
-        pad = batch_size - len(chunk)
-        take = chunk + [chunk[0]] * pad
+        take = _padded(chunk, devices)
         vol = jnp.stack([vols[slot[key_of[i]]] for i in take])  # (B, K, N, N)
         road = None if roads is None else np.stack([roads[i] for i in take])
         temp = np.asarray([temps[i] for i in take], np.float32)
@@ -240,8 +254,10 @@ def track_candidates(
             timer.lap("filter")
             frame = place(_stack(rows + [rows[0]] * (batch_size - len(active))))  # static shapes
             bev = step.network(params, frame)  # once per frame: every tile below reuses it
-            if single:  # the frame's stored prior tile
-                one = step.solve(params, bev, frame)
+            if single:  # the frame's stored prior tile, of the drives in flight only
+                take = _padded(list(range(len(active))), _devices(frame))
+                tiles = {k: frame[k][: len(take)] for k in ("tile", "nm_tile") if k in frame}
+                one = step.solve(params, bev, tiles, np.asarray(take))
                 pose_tile = np.asarray(jax.device_get(one["pose_tile"]), np.float64)
             else:
                 pose_tile = np.full((batch_size, 3), np.nan)
@@ -256,6 +272,7 @@ def track_candidates(
                 [temperatures[c] for _, c in owners],
                 off_road=cfg.off_road,
                 batch_size=batch_size,
+                devices=_devices(frame),
             )
             timer.lap("localize")
             for j, s in enumerate(active):
