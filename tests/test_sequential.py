@@ -347,6 +347,7 @@ def test_a_drive_left_in_flight_alone_is_solved_alone():
     # a prior tile and a window tile per drive in flight: 2 frames of both, then 3 of one
     assert calls == [("pose", 2), ("volume", 2)] * 2 + [("pose", 1), ("volume", 1)] * 3
 
+
 def test_each_window_of_the_bank_learns_the_odometry_scale_of_its_own_track():
     """Frames 0-9 peak at the truth (20) and, more strongly (25), at a look-alike 48 m away
     that moves at 0.9 of the car's speed; from frame 10 only the truth peaks. The look-alike's
