@@ -743,6 +743,11 @@ def test_streamed_temperature_fit_matches_the_in_memory_fit():
     # after the first batch, 25 of the 57 grid points; the same fit as the whole grid's
     assert len(range(57)[fit.window]) == 2 * temperature.WINDOW_POINTS + 1 == 25
     assert fit.result() == whole.result() and not fit.at_edge
+    # each batch's rows in parts side by side (a thread per core): one program's values
+    log_t = np.log(temperature.TEMPERATURE_GRID[:9])
+    one = temperature._objective(jnp.asarray(volumes[:5]), jnp.asarray(cells[:5]), log_t)
+    parts = temperature._row_objectives(volumes[:5], cells[:5], log_t)
+    np.testing.assert_array_equal(parts, np.asarray(one, np.float64))
     # the objective on a fine grid, all frames at once (float64)
     grid = np.geomspace(1.0, 16.0, 400)
     flat_v = volumes.reshape(400, -1).astype(np.float64)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import concurrent.futures
+import functools
 import math
 
 import jax
@@ -10,7 +12,7 @@ import numpy as np
 from tqdm import tqdm
 
 from seglocnet_jax import geometry
-from seglocnet_jax.evaluation import LocalizeStep
+from seglocnet_jax.evaluation import LocalizeStep, solver_threads
 
 # Temperature grid: 8 points per decade over [1e-2, 1e5] (the raw volume sums ~1e4 terms); the
 # parabola through the best three points refines it to ~1 % on smooth objectives.
@@ -23,8 +25,8 @@ WINDOW_POINTS = 12
 
 
 @jax.jit
-def _objective(volume, cells, weights, log_t):
-    """``(T,)`` sums over the batch of ``weights * log_softmax(volume / t)[cells]``."""
+def _objective(volume, cells, log_t):
+    """``(B, T)``: ``log_softmax(volume / t)[cells]`` of each row at each ``t``."""
     b, k_dim, h_dim, w_dim = volume.shape  # (B, K, 129, 129)
     flat = volume.reshape(b, -1)
     idx = (cells[:, 0] * h_dim + cells[:, 1]) * w_dim + cells[:, 2]
@@ -32,9 +34,30 @@ def _objective(volume, cells, weights, log_t):
 
     def one(lt):  # one temperature at a time: one (B, K*H*W) temporary
         t = jnp.exp(lt)
-        return jnp.sum(weights * (gt / t - jax.nn.logsumexp(flat / t, axis=1)))
+        return gt / t - jax.nn.logsumexp(flat / t, axis=1)
 
-    return jax.lax.map(one, log_t)
+    return jax.lax.map(one, log_t).T
+
+
+@functools.cache
+def _pool() -> concurrent.futures.ThreadPoolExecutor:
+    return concurrent.futures.ThreadPoolExecutor(solver_threads(), thread_name_prefix="fit")
+
+
+def _row_objectives(volume, cells, log_t) -> np.ndarray:
+    """:func:`_objective` ``(B, T)`` float64, its rows in parts side by side on CPU (one
+    program runs on one core: a part per :func:`~seglocnet_jax.evaluation.solver_threads`);
+    a row's values do not depend on the parts."""
+    rows = len(cells)
+    log_t = jnp.asarray(log_t, jnp.float32)
+    bounds = np.linspace(0, rows, min(solver_threads(), rows) + 1).round().astype(int)
+
+    def part(lo, hi):
+        sub = volume if (lo, hi) == (0, rows) else volume[lo:hi]
+        return np.asarray(_objective(sub, jnp.asarray(cells[lo:hi]), log_t), np.float64)
+
+    jobs = [_pool().submit(part, lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
+    return np.concatenate([job.result() for job in jobs])
 
 
 class TemperatureFit:
@@ -63,13 +86,8 @@ class TemperatureFit:
         weights = np.ones(len(cells)) if weights is None else np.asarray(weights, np.float64)
         if not (weights > 0).any():
             return
-        out = _objective(
-            volume,
-            jnp.asarray(cells),
-            jnp.asarray(weights, jnp.float32),
-            jnp.asarray(self.log_t[self.window], jnp.float32),
-        )
-        self.total[self.window] += np.asarray(out, np.float64)
+        out = _row_objectives(volume, cells, self.log_t[self.window])  # (B, T)
+        self.total[self.window] += np.where(weights[:, None] > 0, weights[:, None] * out, 0).sum(0)
         if not self.count:  # the first batch: narrow to the window around its best point
             best, n = int(np.argmax(self.total)), len(self.log_t)
             self.window = slice(
