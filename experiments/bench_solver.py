@@ -11,7 +11,10 @@ schedule (same transforms, shapes, counts, per-sample and per-chunk loops, one a
 and nothing else: each call transforms its own previous output, so there are no pads, crops,
 transposes, BEV rotation, spectrum products or output assembly. ``fft_over_bare`` (ratio of the
 medians; ``fft_over_bare_cpu`` of the process CPU times, steadier on shared cores) is what the
-solver costs over its FFTs alone.
+solver costs over its FFTs alone. ``step_ms_per_sample`` is the apps' path on the same inputs:
+the localize step's solver (``evaluation.make_localize_step``, decoded poses), which on CPU
+solves a batch's rows in ``step_threads`` parts side by side (a host thread per core: one
+solver program runs on one core).
 The process runs with the allocator setting of the apps that call the solver (train, evaluate:
 ``app.allocator.keep_freed_memory``, so that each call's 17 MB volume per sample reuses freed
 pages instead of faulting fresh ones in); ``--default-allocator`` times it with glibc's defaults.
@@ -48,7 +51,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from seglocnet_jax import geometry, solver
+from seglocnet_jax import evaluation, geometry, solver
+from seglocnet_jax.model.config import preset
 
 BARE_FFT = (
     "XLA FFT calls alone: the fft path's transforms (tile fft2 once per sample; per chunk of "
@@ -160,6 +164,10 @@ def bench(
 
     bufs = (normal(chunk, pairs, tsize, tsize), normal(chunk, 2, tsize, tsize))
     t0 = normal(2 * pairs, tsize, tsize)  # the tile side: quarters 0 and 1 of each channel pair
+    # The apps' path: the localize step's solver (GT-source step: the BEVs as they are), its
+    # rows in parts side by side on CPU (evaluation.solver_threads), decoded to poses.
+    step = evaluation.make_localize_step(preset("tiny"), cfg, "gt")
+    rows = np.arange(batch)
     runs = {
         "fft": lambda: solver.score_volume_batch(
             bevs, tiles, num_rotations, "fft", cfg.rotation_chunk, cfg.batch_chunk
@@ -167,8 +175,9 @@ def bench(
         "bare_fft": lambda: bare_fft_volume(
             bufs, t0, num_rotations, cfg.rotation_chunk, cfg.batch_chunk
         ),
+        "step": lambda: step.solve(None, {"template": bevs}, {"tile": tiles}, rows),
     }
-    print(f"batch {batch}: fft and bare_fft x{repeats} in turn ...", file=sys.stderr, flush=True)
+    print(f"batch {batch}: {', '.join(runs)} x{repeats} in turn ...", file=sys.stderr, flush=True)
     for fn in runs.values():
         jax.block_until_ready(fn())  # compile and warm up
     load_before = os.getloadavg()[0]
@@ -185,6 +194,7 @@ def bench(
         result[f"{name}_ms_per_sample"] = round(1000 * float(np.median(ts)) / batch, 2)
         result[f"{name}_min_ms_per_sample"] = round(1000 * float(np.min(ts)) / batch, 2)
         result[f"{name}_cpu_ms_per_sample"] = round(1000 * float(np.median(cpu[name])) / batch, 2)
+    result["step_threads"] = min(step.threads, batch)
     for kind in ("", "_cpu"):
         result[f"fft_over_bare{kind}"] = round(
             result[f"fft{kind}_ms_per_sample"] / result[f"bare_fft{kind}_ms_per_sample"], 3
@@ -192,13 +202,15 @@ def bench(
     print(
         f"  fft {result['fft_ms_per_sample']} ms/sample, bare FFTs "
         f"{result['bare_fft_ms_per_sample']}: x{result['fft_over_bare']} "
-        f"(cpu x{result['fft_over_bare_cpu']}; load {result['load_1min']})",
+        f"(cpu x{result['fft_over_bare_cpu']}; load {result['load_1min']}); the localize "
+        f"step's solver {result['step_ms_per_sample']} ms/sample in "
+        f"{result['step_threads']} thread(s)",
         file=sys.stderr,
         flush=True,
     )
     if profile:
         print(f"batch {batch}: profiling fft and bare_fft ...", file=sys.stderr, flush=True)
-        result["profile"] = {name: op_profile(fn, batch) for name, fn in runs.items()}
+        result["profile"] = {name: op_profile(runs[name], batch) for name in ("fft", "bare_fft")}
         print(f"  {json.dumps(result['profile'])}", file=sys.stderr, flush=True)
     if conv_repeats:
         print(f"batch {batch}: conv x{conv_repeats} ...", file=sys.stderr, flush=True)
