@@ -96,7 +96,7 @@ def test_the_solver_threads_give_the_one_program_outputs(tiny_params, monkeypatc
                     np.testing.assert_array_equal(a[k], b[k], err_msg=k)
     finally:
         step.threads = evaluation.solver_threads()
-    assert any(name.startswith("solver") for name in names)  # the later calls: in threads
+    assert any(name.startswith("parts") for name in names)  # the later calls: in threads
 
 
 def _groups(grads):

@@ -252,3 +252,35 @@ def test_two_processes_read_their_halves_and_train_like_one(tmp_path):
     assert results[0]["losses"] == results[1]["losses"]
     _, l8, _ = _run(8, 3)
     np.testing.assert_allclose(results[0]["losses"], l8, rtol=1e-5, atol=1e-6)
+
+
+def test_the_cpu_device_count_divides_the_batch_and_evaluation_stays_on_one_device():
+    assert [stp.cpu_devices(8, cores) for cores in (1, 2, 3, 4, 6, 16)] == [1, 2, 2, 4, 4, 8]
+    assert stp.cpu_devices(6, 4) == 3
+    mesh = stp.make_mesh()  # the tests' 8 CPU devices
+    one = stp.evaluation_mesh(mesh)
+    assert one.devices.size == 1 and one.devices.flat[0] == mesh.devices.flat[0]
+    single = stp.make_mesh(1)
+    assert stp.evaluation_mesh(single) is single
+
+
+@pytest.mark.parametrize("chosen", [None, "1"])
+def test_the_train_entry_sets_a_cpu_device_per_core_unless_the_user_chose(chosen, tmp_path):
+    """``python -m seglocnet_jax.train`` (a fresh process) makes one CPU device per usable
+    core for the batch of 8 before anything starts JAX (a bad config value stops it right
+    after, naming the key), or keeps the user's JAX_NUM_CPU_DEVICES."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_NUM_CPU_DEVICES", "XLA_FLAGS")}
+    if chosen:
+        env["JAX_NUM_CPU_DEVICES"] = chosen
+    out = subprocess.run(
+        [sys.executable, "-m", "seglocnet_jax.train", "train.num_steps=-1",
+         f"hydra.run.dir={tmp_path}"],
+        env=env, capture_output=True, text=True, cwd=tmp_path,
+    )  # fmt: skip
+    assert out.returncode == 1 and "train.num_steps" in out.stdout + out.stderr
+    cores = stp.cpu_devices(8, len(os.sched_getaffinity(0)))
+    line = f"[seglocnet] {cores} XLA CPU device(s): one per usable core"
+    assert (line in out.stdout) == (chosen is None), out.stdout

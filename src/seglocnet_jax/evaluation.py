@@ -99,7 +99,6 @@ class LocalizeStep:
     def __init__(self, model_cfg: ModelConfig, solver_cfg: solver.SolverConfig, bev_source: str):
         base = (model_cfg, solver_cfg, bev_source)
         self.threads = solver_threads()
-        self._pool = None  # the solver's host threads, started on the first split batch
         self._compiled: set = set()  # (program, part size, ...) already traced and compiled
         # The tiles' batch key the map side reads besides ``tile``: an NM network's neural map
         # reads the OSM class tile (the loaders yield it only when asked).
@@ -146,8 +145,7 @@ class LocalizeStep:
         # are split into ``parts`` near-equal parts (sizes differ by at most one: at most two
         # programs per batch size), solved side by side by host threads and joined. A row's
         # outputs do not depend on the split: the fft path solves sample after sample.
-        bounds = np.linspace(0, n, parts + 1).round().astype(int)
-        spans = list(zip(bounds[:-1], bounds[1:], strict=True))
+        spans = row_parts(n, parts)
         # A program's first call for a shape traces and compiles it: in this thread, one part
         # after the other (threads calling it at once would each trace and compile it).
         shapes = jax.tree.map(lambda x: x.shape, (bev, batch))
@@ -156,12 +154,8 @@ class LocalizeStep:
             outs = [self._run(program, params, bev, batch, rows, lo, hi) for lo, hi in spans]
             self._compiled |= signatures
         else:
-            if self._pool is None:
-                self._pool = concurrent.futures.ThreadPoolExecutor(
-                    self.threads, thread_name_prefix="solver"
-                )
             jobs = [
-                self._pool.submit(self._run, program, params, bev, batch, rows, lo, hi)
+                host_pool().submit(self._run, program, params, bev, batch, rows, lo, hi)
                 for lo, hi in spans
             ]
             outs = [job.result() for job in jobs]
@@ -197,6 +191,20 @@ def solver_threads() -> int:
     if hasattr(os, "sched_getaffinity"):
         return len(os.sched_getaffinity(0))
     return os.cpu_count() or 1
+
+
+def row_parts(n: int, parts: int) -> list[tuple[int, int]]:
+    """``(lo, hi)`` of ``min(parts, n)`` (at least one) near-equal parts of ``n`` rows: sizes
+    differ by at most one, so a batch size gives at most two part sizes (programs)."""
+    bounds = np.linspace(0, n, max(1, min(parts, n)) + 1).round().astype(int)
+    return [(int(lo), int(hi)) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+@functools.cache
+def host_pool() -> concurrent.futures.ThreadPoolExecutor:
+    """The host threads that run a batch's parts side by side (:func:`solver_threads`; the
+    localize step's solver, the temperature fit's objective), started on first use."""
+    return concurrent.futures.ThreadPoolExecutor(solver_threads(), thread_name_prefix="parts")
 
 
 @functools.lru_cache(maxsize=16)

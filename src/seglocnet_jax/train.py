@@ -2,7 +2,7 @@
 resume, and print the paper-style table of the final splits. Logic: ``app.train_run``."""
 
 import hydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from seglocnet_jax.app import allocator, hydra_glue
 
@@ -13,6 +13,8 @@ hydra_glue.register_resolvers()
 
 @hydra.main(version_base="1.3", config_path=hydra_glue.conf_dir(), config_name="config")
 def main(cfg: DictConfig) -> None:
+    # first: nothing may start JAX before (the config checks below do)
+    hydra_glue.cpu_device_per_core(OmegaConf.select(cfg, "train.batch_size"))
     from hydra.core.hydra_config import HydraConfig
 
     from seglocnet_jax.app.schema import build_experiment

@@ -163,7 +163,7 @@ def _evaluate(cfg: ExperimentConfig, ref, out_dir: str) -> tuple[dict, dict | No
         example = evaluate.place(next(iter(evaluate.loader(cfg.eval.splits[0]))))
         target, _ = init_state(cfg, example)
         state, step = ckpt_lib.restore_params(ref.step_dir, jax.device_get(target))
-        params = step_lib.replicate(state.params, mesh)
+        params = evaluate.replicate(state.params)
         runs.progress(f"restored {ref.step_dir} (step {step}, {ref.checksum[:19]}...)")
     results, seq = evaluate.final(params, out_dir)
     extra = {"checkpoint": None if ref is None else ref.step_dir, "step": step}

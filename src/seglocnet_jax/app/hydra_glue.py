@@ -97,3 +97,34 @@ def maybe_initialize_distributed() -> None:
 
     if os.environ.get("JAX_COORDINATOR_ADDRESS") or os.environ.get("SEGLOCNET_DISTRIBUTED"):
         jax.distributed.initialize()
+
+
+def cpu_device_per_core(batch_size) -> int | None:
+    """Before JAX starts: XLA's CPU devices, one per usable core down to a divisor of the
+    training batch (``training.step.cpu_devices``), so that the train step sharded over them
+    runs each device's rows on its own core (one device's intra-op threads leave the second
+    core half idle: README, figures); says so on stdout. Left as it is (None returned) when
+    the user chose the count (``JAX_NUM_CPU_DEVICES``, ``--xla_force_host_platform_device_count``
+    in ``XLA_FLAGS``), runs several processes, or ``batch_size`` is not a positive integer
+    (the config check that follows names it). Evaluation stays on one CPU device
+    (``training.step.evaluation_mesh``)."""
+    import jax
+
+    from seglocnet_jax.training import step as step_lib
+
+    chosen = "JAX_NUM_CPU_DEVICES" in os.environ
+    chosen |= "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", "")
+    chosen |= bool(
+        os.environ.get("JAX_COORDINATOR_ADDRESS") or os.environ.get("SEGLOCNET_DISTRIBUTED")
+    )
+    if chosen or isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+        return None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    n = step_lib.cpu_devices(batch_size, cores or 1)
+    jax.config.update("jax_num_cpu_devices", n)  # raises once JAX has started
+    print(
+        f"[seglocnet] {n} XLA CPU device(s): one per usable core, dividing train.batch_size="
+        f"{batch_size} (JAX_NUM_CPU_DEVICES chooses another count)",
+        flush=True,
+    )
+    return n

@@ -60,7 +60,9 @@ class Evaluator:
     """Split evaluation of one run: loaders made once per split, one localize step."""
 
     def __init__(self, cfg: ExperimentConfig, dataset_dir: str, mesh, workdir: str):
-        self.cfg, self.dataset_dir, self.mesh, self.workdir = cfg, dataset_dir, mesh, workdir
+        # the training mesh's devices, or on CPU its first device (step_lib.evaluation_mesh)
+        self.mesh = step_lib.evaluation_mesh(mesh)
+        self.cfg, self.dataset_dir, self.workdir = cfg, dataset_dir, workdir
         self.step = evaluation.make_localize_step(cfg.model, cfg.solver, cfg.eval.bev_source)
         self._loaders = {}
         self.seconds = 0.0
@@ -99,6 +101,10 @@ class Evaluator:
         for split in self.final_splits():
             manifest_lib.verify_split(man, self.dataset_dir, split)
 
+    def replicate(self, params):
+        """``params`` replicated on the evaluation mesh (None stays None: the GT BEV)."""
+        return None if params is None else step_lib.replicate(params, self.mesh)
+
     def place(self, batch: dict) -> dict:
         # Evaluation loaders are not sharded: every process reads the whole batch (the metrics
         # compare device outputs with the host rows of the whole batch).
@@ -108,6 +114,7 @@ class Evaluator:
         self, params, splits, *, max_batches=None, num_figures=0, tag="", out_dir=None
     ) -> dict:
         t0 = time.time()
+        params = self.replicate(params)  # e.g. a training state's, sharded on the train mesh
         out = {}
         for split in splits:
             ld = self.loader(split)
@@ -304,7 +311,7 @@ def _final_evaluation(cfg, evaluate, best_dir, target, logger, step, times, t_st
     out = evalset.OutputSet(evaluate.workdir, evalset.TRAIN_ITEMS)
     staging = out.open()
     try:
-        params = step_lib.replicate(best.params, evaluate.mesh)
+        params = evaluate.replicate(best.params)
         results, seq = evaluate.final(params, staging, logger, step)
         logger.close()
         timing = {k: round(v, 1) for k, v in times.items()}

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import concurrent.futures
-import functools
 import math
 
 import jax
@@ -12,7 +10,7 @@ import numpy as np
 from tqdm import tqdm
 
 from seglocnet_jax import geometry
-from seglocnet_jax.evaluation import LocalizeStep, solver_threads
+from seglocnet_jax.evaluation import LocalizeStep, host_pool, row_parts, solver_threads
 
 # Temperature grid: 8 points per decade over [1e-2, 1e5] (the raw volume sums ~1e4 terms); the
 # parabola through the best three points refines it to ~1 % on smooth objectives.
@@ -39,24 +37,22 @@ def _objective(volume, cells, log_t):
     return jax.lax.map(one, log_t).T
 
 
-@functools.cache
-def _pool() -> concurrent.futures.ThreadPoolExecutor:
-    return concurrent.futures.ThreadPoolExecutor(solver_threads(), thread_name_prefix="fit")
-
-
 def _row_objectives(volume, cells, log_t) -> np.ndarray:
     """:func:`_objective` ``(B, T)`` float64, its rows in parts side by side on CPU (one
-    program runs on one core: a part per :func:`~seglocnet_jax.evaluation.solver_threads`);
-    a row's values do not depend on the parts."""
+    program runs on one core: :func:`~seglocnet_jax.evaluation.row_parts` of
+    :func:`~seglocnet_jax.evaluation.solver_threads`); a row's values do not depend on the
+    parts."""
     rows = len(cells)
     log_t = jnp.asarray(log_t, jnp.float32)
-    bounds = np.linspace(0, rows, min(solver_threads(), rows) + 1).round().astype(int)
 
     def part(lo, hi):
         sub = volume if (lo, hi) == (0, rows) else volume[lo:hi]
         return np.asarray(_objective(sub, jnp.asarray(cells[lo:hi]), log_t), np.float64)
 
-    jobs = [_pool().submit(part, lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
+    spans = row_parts(rows, solver_threads())
+    if len(spans) == 1:
+        return part(*spans[0])
+    jobs = [host_pool().submit(part, lo, hi) for lo, hi in spans]
     return np.concatenate([job.result() for job in jobs])
 
 

@@ -31,6 +31,24 @@ def make_mesh(num_devices: int | None = None) -> jax.sharding.Mesh:
     return jax.make_mesh((n,), ("data",), axis_types=(AxisType.Auto,), devices=devices[:n])
 
 
+def evaluation_mesh(mesh: jax.sharding.Mesh) -> jax.sharding.Mesh:
+    """The mesh evaluation places its batches on: ``mesh``, except on CPU devices in one
+    process, where it is the first device alone. There the localize step splits a batch
+    among host threads (``evaluation.solver_threads``); a program sharded over several CPU
+    devices, launched from several threads at once, deadlocks in its collectives, and the
+    partitioner does not split the solver's per-sample loop (the devices share the cores)."""
+    devices = list(mesh.devices.flat)
+    if len(devices) == 1 or devices[0].platform != "cpu" or jax.process_count() > 1:
+        return mesh
+    return jax.make_mesh((1,), ("data",), axis_types=(AxisType.Auto,), devices=devices[:1])
+
+
+def cpu_devices(batch_size: int, cores: int) -> int:
+    """XLA CPU devices for a run whose global batch is ``batch_size`` on ``cores`` usable
+    cores: one per core, down to the largest count that divides the batch."""
+    return max(d for d in range(1, max(cores, 1) + 1) if batch_size % d == 0)
+
+
 def batch_shard(mesh: jax.sharding.Mesh) -> tuple[int, int]:
     """``(shard_index, shard_count)`` of this process's rows of a global batch on ``mesh``.
 
