@@ -1002,9 +1002,10 @@ def test_gt_drives_are_tracked_through_the_evaluate_app(data_root, tmp_path, cap
     assert s["filter_ms_per_frame"] > 0 and sum(d["frames"] for d in s["per_drive"]) == s["frames"]
     assert s["score_ms_per_frame"] > 0  # the GT's read-out, timed apart from the filter's
     assert s["compile_ms_per_frame"] >= 0  # later compilations, timed apart
-    # One solver program for every frame's windows: the batch of 129-cell tiles (the tracking
-    # window's frames too: the centre of their volume).
-    assert evaluation.TRACE_COUNTS[key] - before == 1
+    # Two solver programs for every frame's windows: the batch of 256-pixel tiles (the tracking
+    # window's frames too: the centre of their volume), and that of the 288-pixel union tiles
+    # of the temperature candidates' windows a few cells apart.
+    assert evaluation.TRACE_COUNTS[key] - before == 2
     assert all(d["frames_narrowed"] >= 1 for d in s["per_drive"]) and s["narrowed_pct"] > 0
     assert "in tracking window (%)" in out and "acquisition" not in out
     assert "seq_test [hd_road-building, gt] drives_val filtered" in out

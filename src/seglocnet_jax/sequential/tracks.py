@@ -3,8 +3,10 @@
 localize step (see the package docstring). The network runs once per frame
 (:meth:`~seglocnet_jax.evaluation.LocalizeStep.network`); the solver matches that BEV against
 the tile of every window of the drive and against the frame's stored prior tile (the
-single-frame pose). The loop only feeds frames, batches the localizations and collects the
-tracks; the timing lives in :class:`_StepTimer`."""
+single-frame pose); a frame's window tiles a few cells apart (the temperature candidates')
+are solved as one slightly larger tile, each window's volume a crop of it (:func:`_volumes`).
+The loop only feeds frames, batches the localizations and collects the tracks; the timing
+lives in :class:`_StepTimer`."""
 
 from __future__ import annotations
 
