@@ -147,15 +147,15 @@ def _corner(raster, centre, size: int) -> tuple[int, int]:
     return row - size // 2, col - size // 2
 
 
-def _groups(corners: list, span: int | None) -> list[list[int]]:
+def _groups(corners: list, span: int) -> list[list[int]]:
     """Indices of ``corners`` (the top-left pixels of one frame's distinct tiles) grouped
     greedily in order: a tile joins the first group whose corners, with it, stay within
-    ``span`` pixels per axis (None: every tile alone)."""
+    ``span`` pixels per axis."""
     groups, boxes = [], []
     for i, (r, c) in enumerate(corners):
         for g, (r0, c0, r1, c1) in enumerate(boxes):
             box = (min(r0, r), min(c0, c), max(r1, r), max(c1, c))
-            if span is not None and box[2] - box[0] <= span and box[3] - box[1] <= span:
+            if box[2] - box[0] <= span and box[3] - box[1] <= span:
                 groups[g].append(i)
                 boxes[g] = box
                 break
