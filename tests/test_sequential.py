@@ -336,7 +336,6 @@ def test_windows_a_few_cells_apart_are_solved_as_one_union_tile():
     split, _, _, _, preset = _network_drives(frames=1)
     step = evaluation.make_localize_step(preset("tiny"), solver.SolverConfig(num_rotations=K), "gt")
     raster = split.rasters["town"]
-    cfg = sequential.tracker_config(sequential.EvalConfig(), K, raster.channels)
     frame_rows = split.rows([0, 1])
     frame = _place(_stack_rows(frame_rows))
     bev = step.network(None, frame)
@@ -351,7 +350,7 @@ def test_windows_a_few_cells_apart_are_solved_as_one_union_tile():
     kw = dict(off_road=0.0, batch_size=8, devices=1)
     temps = [1.0] * len(owners)
     united = tracks._volumes(counting, None, _place, bev, window_rows, owners, None, temps,
-                             rasters=[raster] * len(owners), cfg=cfg, **kw)  # fmt: skip
+                             rasters=[raster] * len(owners), **kw)  # fmt: skip
     alone = tracks._volumes(step, None, _place, bev, window_rows, owners, None, temps, **kw)
     assert counting.solved_rows == [2, 2]  # the far windows, then each frame's three as one
     for a, b in zip(united, alone, strict=True):

@@ -95,8 +95,15 @@ def maybe_initialize_distributed() -> None:
     coordinator address, or a cluster JAX auto-detects such as SLURM / TPU pods)."""
     import jax
 
-    if os.environ.get("JAX_COORDINATOR_ADDRESS") or os.environ.get("SEGLOCNET_DISTRIBUTED"):
+    if _distributed():
         jax.distributed.initialize()
+
+
+def _distributed() -> bool:
+    """The environment asks for several processes (see :func:`maybe_initialize_distributed`)."""
+    return bool(
+        os.environ.get("JAX_COORDINATOR_ADDRESS") or os.environ.get("SEGLOCNET_DISTRIBUTED")
+    )
 
 
 def cpu_device_per_core(batch_size) -> int | None:
@@ -114,10 +121,13 @@ def cpu_device_per_core(batch_size) -> int | None:
 
     chosen = "JAX_NUM_CPU_DEVICES" in os.environ
     chosen |= "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", "")
-    chosen |= bool(
-        os.environ.get("JAX_COORDINATOR_ADDRESS") or os.environ.get("SEGLOCNET_DISTRIBUTED")
-    )
-    if chosen or isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+    if (
+        chosen
+        or _distributed()
+        or isinstance(batch_size, bool)
+        or not isinstance(batch_size, int)
+        or batch_size < 1
+    ):
         return None
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     n = step_lib.cpu_devices(batch_size, cores or 1)

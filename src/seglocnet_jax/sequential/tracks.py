@@ -187,7 +187,6 @@ def _volumes(
     batch_size,
     devices,
     rasters=None,
-    cfg=None,
 ) -> list:
     """The log-likelihood ``(K, N, N)`` of each window row: the solver's volume program on the
     frame's BEV (``bev``, row ``owners[i]`` for window row ``i``: the network does not run
@@ -196,10 +195,10 @@ def _volumes(
     channels, or None) plus the on-road prior. Rows of one frame with the same tile centre
     (the temperature candidates' windows often coincide) share one solver volume: it does not
     depend on T. With ``rasters`` (each row's city raster; a seg model's, whose tile the
-    solver reads as it is) and ``cfg`` (the filter's), the distinct tiles of one frame that
-    lie within :data:`UNION_SPAN` pixels of each other are solved as one union tile
-    :data:`UNION_SPAN` pixels larger, each window's volume a crop of the union's (the
-    candidates' windows usually lie a few cells apart)."""
+    solver reads as it is), the distinct tiles of one frame that lie within
+    :data:`UNION_SPAN` pixels of each other are solved as one union tile :data:`UNION_SPAN`
+    pixels larger, each window's volume a crop of the union's (the candidates' windows
+    usually lie a few cells apart)."""
     key_of = [
         (o, np.asarray(r["tile_center"], np.float64).tobytes())
         for o, r in zip(owners, rows, strict=True)
@@ -208,7 +207,18 @@ def _volumes(
     for i, key in enumerate(key_of):
         first.setdefault(key, i)
     unique = list(first.values())  # row index of each distinct (frame, tile)
-    vols = [None] * len(unique)
+
+    def solve(tile_rows, frames) -> list:
+        """The volume of each tile row against its frame's BEV: ``(volumes, index)`` pairs."""
+        out = []
+        for start in range(0, len(tile_rows), batch_size):
+            take = _padded(list(range(start, min(start + batch_size, len(tile_rows)))), devices)
+            batch = place(_stack([tile_rows[i] for i in take]))
+            index = np.asarray([frames[i] for i in take])
+            vol = step.solve(params, bev, batch, index, volume=True)["volume"]
+            out.extend((vol, n) for n in range(min(batch_size, len(tile_rows) - start)))
+        return out
+
     alone, unions = [], []  # unique positions solved as they are / (corner, [(pos, offset)])
     by_owner = collections.defaultdict(list)
     for pos, i in enumerate(unique):
@@ -217,7 +227,7 @@ def _volumes(
         if rasters is None:
             alone.extend(positions)
             continue
-        size = cfg.tile_size
+        size = rows[unique[positions[0]]]["tile"].shape[-1]
         corners = [
             _corner(rasters[unique[p]], rows[unique[p]]["tile_center"], size) for p in positions
         ]
@@ -229,37 +239,27 @@ def _volumes(
             c0 = min(corners[g][1] for g in group)
             members = [(positions[g], (corners[g][0] - r0, corners[g][1] - c0)) for g in group]
             unions.append(((r0, c0), members))
-    for start in range(0, len(alone), batch_size):
-        chunk = [unique[p] for p in alone[start : start + batch_size]]
-        take = _padded(chunk, devices)
-        batch = place(_stack([rows[i] for i in take]))
-        index = [owners[i] for i in take]
-        vol = step.solve(params, bev, batch, np.asarray(index), volume=True)["volume"]
-        for n, p in enumerate(alone[start : start + batch_size]):
-            vols[p] = vol[n]
-    size = None if cfg is None else cfg.tile_size + UNION_SPAN
-    for start in range(0, len(unions), batch_size):
-        chunk = unions[start : start + batch_size]
-        union_rows = []
-        for (r0, c0), members in chunk:
-            i = unique[members[0][0]]
-            raster = rasters[i]
-            grid = raster.grid
-            centre = np.array(
-                [
-                    grid.x_min + (c0 + size // 2) * grid.resolution,
-                    grid.y_max - (r0 + size // 2) * grid.resolution,
-                ]
-            )
-            tile = geometry.crop(raster.mask, r0, c0, size)
-            union_rows.append(_window_row(rows[i], tile, centre))
-        take = _padded(list(range(len(chunk))), devices)
-        batch = place(_stack([union_rows[n] for n in take]))
-        index = [owners[unique[chunk[n][1][0][0]]] for n in take]
-        vol = step.solve(params, bev, batch, np.asarray(index), volume=True)["volume"]
-        for n, (_, members) in enumerate(chunk):
-            for p, offset in members:
-                vols[p] = _crop(vol, np.int32(n), np.asarray(offset, np.int32), cfg.size)
+    vols = [None] * len(unique)
+    solved = solve([rows[unique[p]] for p in alone], [owners[unique[p]] for p in alone])
+    for p, (vol, n) in zip(alone, solved, strict=True):
+        vols[p] = vol[n]
+    union_rows = []
+    for (r0, c0), members in unions:
+        i = unique[members[0][0]]
+        raster, size = rasters[i], rows[i]["tile"].shape[-1] + UNION_SPAN
+        grid = raster.grid
+        centre = np.array(
+            [
+                grid.x_min + (c0 + size // 2) * grid.resolution,
+                grid.y_max - (r0 + size // 2) * grid.resolution,
+            ]
+        )
+        union_rows.append(_window_row(rows[i], geometry.crop(raster.mask, r0, c0, size), centre))
+    frames = [owners[unique[members[0][0]]] for _, members in unions]
+    for (_, members), (vol, n) in zip(unions, solve(union_rows, frames), strict=True):
+        for p, offset in members:
+            offset = np.asarray(offset, np.int32)
+            vols[p] = _crop(vol, np.int32(n), offset, vol.shape[-1] - UNION_SPAN)
     slot = {key: n for n, key in enumerate(first)}
     out = []
     for start in range(0, len(rows), batch_size):
@@ -380,7 +380,6 @@ def track_candidates(
                 rasters=None
                 if split.nm_rasters is not None
                 else [split.rasters[slots[active[j]][0].drive.city] for j, _ in owners],
-                cfg=cfg,
             )
             timer.lap("localize")
             for j, s in enumerate(active):
