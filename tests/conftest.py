@@ -4,7 +4,8 @@ tiny simulated datasets (tests/apphelpers.py), prepared once per session under t
 
 The session compiles the same small programs many times over (every app run builds its train
 and evaluation steps again): a persistent compilation cache, fresh for each session and shared
-with the tests' subprocesses, compiles each once (the suite: 1,277 s on CI without it)."""
+with the tests' subprocesses and pytest-xdist's workers (``-n 2`` in pyproject's addopts),
+compiles each once (the suite: 1,277 s on CI without it)."""
 
 import atexit
 import os
@@ -14,8 +15,12 @@ import tempfile
 import pytest
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-_CACHE = tempfile.mkdtemp(prefix="seglocnet-test-xla-cache-")
-atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
+# pytest-xdist's workers inherit the controller's environment: they share its cache.
+_CACHE = os.environ.get("SEGLOCNET_TEST_XLA_CACHE")
+if _CACHE is None:
+    _CACHE = tempfile.mkdtemp(prefix="seglocnet-test-xla-cache-")
+    atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
+    os.environ["SEGLOCNET_TEST_XLA_CACHE"] = _CACHE
 os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE
 os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
