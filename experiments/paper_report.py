@@ -107,9 +107,21 @@ def _figure(path, title, groups, data, split):
     os.replace(tmp, path)
 
 
+SEEDS = ("hd", "hd_seed1", "hd_seed2")
+
+
+def _commits(data, names) -> list[str]:
+    """The distinct commits of the measured rows ``names`` (sorted; None where unknown)."""
+    found = {data[n].get("commit") for n in names if n in data and data[n]["results"] is not None}
+    return sorted(found, key=str)
+
+
 def seed_range(data) -> float | None:
-    """Max - min test R@1m over the HD row's measured seeds (None: fewer than two)."""
-    seeds = [_num(data[n], "test", "R@1m") for n in ("hd", "hd_seed1", "hd_seed2") if n in data]
+    """Max - min test R@1m over the HD row's measured seeds (None: fewer than two, or seeds
+    measured at different commits: their spread would mix code changes with seed noise)."""
+    if len(_commits(data, SEEDS)) > 1:
+        return None
+    seeds = [_num(data[n], "test", "R@1m") for n in SEEDS if n in data]
     seeds = [v for v in seeds if v is not None]
     return max(seeds) - min(seeds) if len(seeds) >= 2 else None
 
@@ -126,30 +138,41 @@ def findings(data) -> list[tuple[str, bool | None, str, str]]:
     out = []
     spread = seed_range(data)
 
-    def add(text, values, check, gap=None):
+    def add(text, names, values, check, gap=None):
+        """``names``: the rows ``values`` come from; rows measured at different commits are
+        not compared (the difference could be the code's, not the finding's)."""
         if any(v is None for v in values):
             out.append((text, None, "not all rows measured", "–"))
             return
-        margin = "–"
-        if gap is not None and spread is not None:
+        commits = _commits(data, names)
+        if len(commits) > 1:
+            shown = ", ".join(str(c)[:7] for c in commits)
+            measured = " / ".join(f"{v:.1f}" for v in values)
+            out.append((text, None, f"{measured}, rows from different commits ({shown})", "–"))
+            return
+        margin = "–"  # the seed range weighs a gap of the seeds' own code only
+        if gap is not None and spread is not None and commits == _commits(data, SEEDS):
             g = abs(gap(*values))
             margin = f"gap {g:.1f} {'>' if g > spread else '≤'} seed range {spread:.1f}"
         out.append((text, bool(check(*values)), " / ".join(f"{v:.1f}" for v in values), margin))
 
-    seeds = [r(n) for n in ("hd", "hd_seed1", "hd_seed2")]
+    seeds = [r(n) for n in SEEDS]
     add(
         "I: HD > NM > SD at R@1m (test)",
+        ("hd", "nm", "sd"),
         [r("hd"), r("nm"), r("sd")],
         lambda a, b, c: a > b > c,
         lambda a, b, c: min(a - b, b - c, key=abs),
     )
     add(
         "I: NM behind SD at R@5m (test)",
+        ("nm", "sd"),
         [r("nm", "R@5m"), r("sd", "R@5m")],
         lambda a, b: a < b,
     )
     add(
         "I: GT rows far above every trained one (R@1m test: GT-HD, GT-SD, best trained)",
+        ("gt_hd", "gt_sd", "hd", "sd", "nm"),
         [
             r("gt_hd"),
             r("gt_sd"),
@@ -160,50 +183,58 @@ def findings(data) -> list[tuple[str, bool | None, str, str]]:
     add(
         f"NM: its segmentation term did not collapse (road IoU ≥ {NM_MIN_ROAD_IOU:g} %: test, "
         "Kouvola)",
+        ("nm",),
         [r("nm", "IoU_road"), r("nm", "IoU_road", "kouvola")],
         lambda a, b: min(a, b) >= NM_MIN_ROAD_IOU,
     )
     add(
         "III: HD and SD keep most accuracy on the unseen city (R@1m Kouvola / test)",
+        ("hd", "sd"),
         [r("hd", split="kouvola"), r("hd"), r("sd", split="kouvola"), r("sd")],
         lambda a, b, c, d: a > 0.5 * b and c > 0.5 * d,
     )
     add(
         "III: NM collapses on the unseen city (R@1m Kouvola / test)",
+        ("nm",),
         [r("nm", split="kouvola"), r("nm")],
         lambda a, b: a < 0.5 * b,
     )
     add(
         "IV: drivable area alone beats buildings alone (R@1m)",
+        ("road", "building"),
         [r("road"), r("building")],
         lambda a, b: a > b,
         lambda a, b: a - b,
     )
     add(
         "IV: both together best (R@1m: both, road, building)",
+        ("hd", "road", "building"),
         [r("hd"), r("road"), r("building")],
         lambda a, b, c: a > max(b, c),
         lambda a, b, c: a - max(b, c),
     )
     add(
         "V: 2.5 m best at R@1m (2.5 / 5 / 10 m)",
+        ("sd_w2.5", "sd_w5", "sd"),
         [r("sd_w2.5"), r("sd_w5"), r("sd")],
         lambda a, b, c: a >= max(b, c),
         lambda a, b, c: a - max(b, c),
     )
     add(
         "V: 10 m best at R@5m (2.5 / 5 / 10 m)",
+        ("sd_w2.5", "sd_w5", "sd"),
         [r("sd_w2.5", "R@5m"), r("sd_w5", "R@5m"), r("sd", "R@5m")],
         lambda a, b, c: c >= max(a, b),
     )
     add(
         "Modality (not in the paper): fused beats camera only and LiDAR only (R@1m: fused, "
         "camera, LiDAR)",
+        ("hd", "camera", "lidar"),
         [r("hd"), r("camera"), r("lidar")],
         lambda a, b, c: a > max(b, c),
         lambda a, b, c: a - max(b, c),
     )
-    if all(v is not None for v in seeds):
+    if all(v is not None for v in seeds) and len(_commits(data, SEEDS)) <= 1:
         import numpy as np
 
         out.append(

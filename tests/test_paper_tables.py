@@ -168,6 +168,34 @@ def test_findings_weigh_the_deciding_gap_against_the_seed_range():
     assert [m[1:] for m in modality] == [(False, "54.0 / 8.0 / 60.0", "gap 6.0 > seed range 5.0")]
 
 
+def test_rows_from_different_commits_are_not_compared():
+    # A partial rerun leaves rows of older code in the store: a finding over rows of two
+    # commits (or a seed range over seeds of two commits) would compare code, not settings.
+    mod = _module()
+
+    def row(r1, commit):
+        return {"results": {"splits": {"test": {"R@1m": r1}}}, "commit": commit}
+
+    data = {n: {"results": None} for n in mod.BY_NAME}
+    data.update(hd=row(63.0, "new"), road=row(47.0, "old"), building=row(44.0, "old"))
+    by_text = {f[0]: f for f in mod.findings(data)}
+    both = by_text["IV: both together best (R@1m: both, road, building)"]
+    assert both[1:] == (None, "63.0 / 47.0 / 44.0, rows from different commits (new, old)", "–")
+    road = by_text["IV: drivable area alone beats buildings alone (R@1m)"]
+    assert road[1] is True  # one commit: compared
+    data.update(hd_seed1=row(59.0, "new"), hd_seed2=row(54.0, "old"))
+    assert mod.seed_range(data) is None
+    assert not [f for f in mod.findings(data) if f[0].startswith("seed spread")]
+    data["hd_seed2"]["commit"] = "new"
+    assert mod.seed_range(data) == 9.0
+    by_text = {f[0]: f for f in mod.findings(data)}
+    road = by_text["IV: drivable area alone beats buildings alone (R@1m)"]
+    assert road[1:] == (True, "47.0 / 44.0", "–")  # the seeds' range is the new code's
+    data.update(road=row(47.0, "new"), building=row(44.0, "new"))
+    road = {f[0]: f for f in mod.findings(data)}[road[0]]
+    assert road[3] == "gap 3.0 ≤ seed range 9.0"
+
+
 def _module():
     spec = importlib.util.spec_from_file_location("paper_tables", SCRIPT)
     mod = importlib.util.module_from_spec(spec)
