@@ -13,7 +13,7 @@ import numpy as np
 import optax
 import pytest
 
-from seglocnet_jax import evaluation, solver
+from seglocnet_jax import evaluation, losses, solver
 from seglocnet_jax.model import api, synthetic
 from seglocnet_jax.model.config import preset
 
@@ -137,6 +137,34 @@ def test_every_parameter_group_gets_a_gradient(modality, variant, tiny_params):
         norm = float(sum(np.abs(np.asarray(g)).sum() for g in jax.tree.leaves(tree)))
         assert np.isfinite(norm), f"{modality}/{variant}: non-finite gradient in {name}"
         assert norm > 0, f"{modality}/{variant}: parameter group {name} gets no gradient"
+
+
+def test_the_camera_aux_loss_is_the_focal_loss_of_the_camera_latent_alone():
+    """``model.camera_aux_weight``: the loss adds that weight times the focal loss of the
+    camera latent's own 16x16 logits against the GT's mean over each 8x8-pixel cell, a term
+    whose gradient reaches the camera branch and its head only."""
+    assert TINY.camera_aux_weight == 1.0 and preset("paper").camera_aux_weight == 0.0
+    cfg = dataclasses.replace(TINY, camera_aux_weight=0.5, transformer_layers=1)
+    batch = _batch(3)
+    params = api.init(_key(2), batch, cfg)
+    assert params["camera_aux"]["kernel"].shape == (1, 1, cfg.embed_dim, cfg.num_classes)
+
+    def run(p, b):
+        camera_term = jax.grad(lambda q: api.loss_fn(q, b, cfg)[1]["camera_aux_focal"])(p)
+        return api.loss_fn(p, b, cfg), api.forward(p, b, cfg)[1]["camera_aux_logits"], camera_term
+
+    (loss, metrics), logits, grads = jax.jit(run)(params, batch)
+    labels = np.asarray(batch["bev_gt"], np.float32)
+    cells = sum(labels[:, :, i::8, j::8] for i in range(8) for j in range(8)) / 64.0
+    want = losses.sigmoid_focal_loss(logits, jnp.asarray(cells)).mean()
+    np.testing.assert_allclose(metrics["camera_aux_focal"], want, rtol=1e-5)
+    np.testing.assert_allclose(loss, metrics["focal"] + 0.5 * want, rtol=1e-5)
+    for group, tree in grads.items():
+        norm = float(sum(np.abs(np.asarray(g)).sum() for g in jax.tree.leaves(tree)))
+        assert (norm > 0) == (group in ("camera", "camera_aux")), f"{group}: gradient {norm}"
+    assert not dataclasses.replace(cfg, modality="camera").camera_aux  # fused only
+    with pytest.raises(ValueError, match="camera_aux_weight"):
+        dataclasses.replace(TINY, camera_aux_weight=-1.0)
 
 
 def _best_constant_focal(labels: np.ndarray, alpha: float, gamma: float) -> float:

@@ -101,8 +101,10 @@ def loss_fn(params: dict, batch: dict, cfg: ModelConfig, rng: jax.Array | None =
 
     ``seg``: mean over classes of the per-class focal loss. ``nm``: ``seg_weight * focal +
     nm_weight * NLL`` of the GT pose cell over all ``nm_num_rotations x 129 x 129`` cells.
+    Fused, both add ``camera_aux_weight`` times the focal loss of the camera latent's own
+    logits (``aux["camera_aux_logits"]``, 16x16) against the GT averaged over each latent cell.
     Metrics: ``focal``, ``focal_c{i}``, ``iou_c{i}`` (threshold 0.5, pooled over the batch),
-    and for NM ``pose_nll`` and ``match_scale``.
+    ``camera_aux_focal`` when that term is on, and for NM ``pose_nll`` and ``match_scale``.
     """
     _check_labels(batch, cfg)
     logits, aux = forward(params, batch, cfg, train=True, rng=rng)
@@ -117,13 +119,24 @@ def loss_fn(params: dict, batch: dict, cfg: ModelConfig, rng: jax.Array | None =
     for i in range(cfg.num_classes):
         metrics[f"focal_c{i}"] = per_class[i]
         metrics[f"iou_c{i}"] = iou[i]
+    camera_term = 0.0
+    if cfg.camera_aux:
+        cam_logits = aux["camera_aux_logits"]  # (B, C, n, n): the GT's mean over each cell
+        b, c, n = labels.shape[0], labels.shape[1], cam_logits.shape[-1]
+        cell = labels.shape[-1] // n
+        pooled = labels.reshape(b, c, n, cell, n, cell).mean(axis=(3, 5))
+        cam_focal = losses.sigmoid_focal_loss(
+            cam_logits, pooled, cfg.focal_alpha, cfg.focal_gamma
+        ).mean()
+        metrics["camera_aux_focal"] = cam_focal
+        camera_term = cfg.camera_aux_weight * cam_focal
     if cfg.variant != "nm":
-        return focal, metrics
+        return focal + camera_term, metrics
     log_probs = nm_log_likelihood(aux, cfg.nm_num_rotations)  # (B, K, 129, 129)
     cells = losses.gt_cells(batch["pose_tile"], cfg.nm_num_rotations, log_probs.shape[-1])
     nll = losses.pose_nll(log_probs, cells).mean()
     metrics.update(pose_nll=nll, match_scale=aux["match_scale"])
-    return cfg.seg_weight * focal + cfg.nm_weight * nll, metrics
+    return cfg.seg_weight * focal + cfg.nm_weight * nll + camera_term, metrics
 
 
 def make_loss_fn(cfg: ModelConfig):

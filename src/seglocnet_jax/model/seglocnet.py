@@ -81,6 +81,9 @@ class SegLocNet(nn.Module):
             )
             aux["camera_latent"] = cam
             latents.append(cam)
+            if cfg.camera_aux:
+                cam_logits = nn.Conv(cfg.num_classes, (1, 1), name="camera_aux")(cam)
+                aux["camera_aux_logits"] = jnp.moveaxis(cam_logits, -1, 1)  # (B, C, 16, 16)
         if cfg.use_lidar:
             lid, lidar_skips = LidarEncoder(cfg, name="lidar")(
                 batch["points"], batch["points_mask"]
