@@ -61,12 +61,12 @@ class SegLocNet(nn.Module):
     ``aux`` holds: ``bev_latent`` (B, 16, 16, D) fused latent; ``camera_latent`` /
     ``lidar_latent`` (B, 16, 16, D) for the built branches; ``camera_aux_logits`` (B, C, 16, 16)
     the camera latent's own logits when ``cfg.camera_aux`` (read by the loss only);
-    ``bev_features`` (B, 128, 128, F) the decoder's last features; for the NM variant ``bev_match`` (B, D', 128, 128),
-    ``map_match`` (B, D', 256, 256) (the neural map of ``batch["nm_tile"]``; both unit-norm per
-    pixel, channels first like the solver's inputs) and ``match_scale`` () the learned score
-    factor. ``map_side=False`` leaves the map side out (no ``map_match``: the localize step
-    computes the BEV once per frame and the neural map per tile,
-    :func:`seglocnet_jax.model.api.encode_map`).
+    ``bev_features`` (B, 128, 128, F) the decoder's last features; for the NM variant
+    ``bev_match`` (B, D', 128, 128), ``map_match`` (B, D', 256, 256) (the neural map of
+    ``batch["nm_tile"]``; both unit-norm per pixel, channels first like the solver's inputs)
+    and ``match_scale`` () the learned score factor. ``map_side=False`` leaves the map side out
+    (no ``map_match``: the localize step computes the BEV once per frame and the neural map per
+    tile, :func:`seglocnet_jax.model.api.encode_map`).
     """
 
     cfg: ModelConfig
