@@ -108,6 +108,46 @@ def _figure(path, title, groups, data, split):
 
 
 SEEDS = ("hd", "hd_seed1", "hd_seed2")
+# Each modality's seeds 0, 1, 2 (the fused model is the HD row).
+MODALITY_SEEDS = {
+    "camera only": ("camera", "camera_seed1", "camera_seed2"),
+    "LiDAR only": ("lidar", "lidar_seed1", "lidar_seed2"),
+    "fused": SEEDS,
+}
+# The modality table's columns: (heading, split, lighting or None for every frame).
+MODALITY_COLS = (
+    ("test", "test", None),
+    ("Kouvola", "kouvola", None),
+    ("test, night", "test", "night"),
+    ("Kouvola, night", "kouvola", "night"),
+)
+
+
+def _night_num(res, split, lighting, key="R@1m"):
+    """``key`` on the frames of one lighting (``results.splits[split].lighting``); None where
+    not measured."""
+    try:
+        v = res["results"]["splits"][split]["lighting"][lighting][key]
+    except (KeyError, TypeError):
+        return None
+    return None if v is None or (isinstance(v, float) and math.isnan(v)) else float(v)
+
+
+def seed_stats(data, names, split, lighting=None, key="R@1m"):
+    """``(values, mean, range)`` of ``key`` over the measured rows among ``names`` (one value
+    per seed); None when none is measured or the measured ones ran at different commits (a
+    mean over two codes is no seed mean)."""
+    if len(_commits(data, names)) > 1:
+        return None  # the findings say "rows from different commits"
+    vals = [
+        _num(data[n], split, key) if lighting is None else _night_num(data[n], split, lighting, key)
+        for n in names
+        if n in data and data[n]["results"] is not None
+    ]
+    vals = [v for v in vals if v is not None]
+    if not vals:
+        return None
+    return vals, sum(vals) / len(vals), max(vals) - min(vals)
 
 
 def _commits(data, names) -> list[str]:
@@ -138,20 +178,24 @@ def findings(data) -> list[tuple[str, bool | None, str, str]]:
     out = []
     spread = seed_range(data)
 
-    def add(text, names, values, check, gap=None):
+    def add(text, names, values, check, gap=None, own_range=None):
         """``names``: the rows ``values`` come from; rows measured at different commits are
-        not compared (the difference could be the code's, not the finding's)."""
-        if any(v is None for v in values):
-            out.append((text, None, "not all rows measured", "–"))
-            return
+        not compared (the difference could be the code's, not the finding's). ``own_range``:
+        the seed range of the compared rows themselves, weighed instead of the HD row's."""
         commits = _commits(data, names)
         if len(commits) > 1:
             shown = ", ".join(str(c)[:7] for c in commits)
-            measured = " / ".join(f"{v:.1f}" for v in values)
+            measured = " / ".join(_cell(v) for v in values)
             out.append((text, None, f"{measured}, rows from different commits ({shown})", "–"))
             return
+        if any(v is None for v in values):
+            out.append((text, None, "not all rows measured", "–"))
+            return
         margin = "–"  # the seed range weighs a gap of the seeds' own code only
-        if gap is not None and spread is not None and commits == _commits(data, SEEDS):
+        if gap is not None and own_range is not None:
+            g = abs(gap(*values))
+            margin = f"gap {g:.1f} {'>' if g > own_range else '≤'} their seed range {own_range:.1f}"
+        elif gap is not None and spread is not None and commits == _commits(data, SEEDS):
             g = abs(gap(*values))
             margin = f"gap {g:.1f} {'>' if g > spread else '≤'} seed range {spread:.1f}"
         out.append((text, bool(check(*values)), " / ".join(f"{v:.1f}" for v in values), margin))
@@ -226,14 +270,28 @@ def findings(data) -> list[tuple[str, bool | None, str, str]]:
         [r("sd_w2.5", "R@5m"), r("sd_w5", "R@5m"), r("sd", "R@5m")],
         lambda a, b, c: c >= max(a, b),
     )
-    add(
-        "Modality (not in the paper): fused beats camera only and LiDAR only (R@1m: fused, "
-        "camera, LiDAR)",
-        ("hd", "camera", "lidar"),
-        [r("hd"), r("camera"), r("lidar")],
-        lambda a, b, c: a > max(b, c),
-        lambda a, b, c: a - max(b, c),
-    )
+    # Modality: the means over each modality's measured seeds; the gap that decides is weighed
+    # against the larger seed range of the two rows it lies between, once both have 2+ seeds
+    # (not against the HD row's test range: these rows have their own spread).
+    rows = [MODALITY_SEEDS[m] for m in ("fused", "camera only", "LiDAR only")]
+    for where, split, lighting in MODALITY_COLS[:3]:
+        stats = [seed_stats(data, names, split, lighting) for names in rows]
+        counts = " / ".join(str(len(st[0])) if st else "0" for st in stats)
+        values = [st[1] if st else None for st in stats]
+        own = None
+        if all(stats) and len(stats[0][0]) > 1:
+            rival = 1 if values[1] > values[2] else 2
+            if len(stats[rival][0]) > 1:
+                own = max(stats[0][2], stats[rival][2])
+        add(
+            "Modality (not in the paper): fused beats camera only and LiDAR only (R@1m "
+            f"{where}, mean of {counts} seeds: fused, camera, LiDAR)",
+            sum(rows, ()),
+            values,
+            lambda a, b, c: a > max(b, c),
+            (lambda a, b, c: a - max(b, c)) if own is not None else None,
+            own_range=own,
+        )
     if all(v is not None for v in seeds) and len(_commits(data, SEEDS)) <= 1:
         import numpy as np
 
@@ -246,6 +304,61 @@ def findings(data) -> list[tuple[str, bool | None, str, str]]:
             )
         )
     return out
+
+
+def _modality_table(data) -> str:
+    """R@1m per modality as the mean over its measured seeds (min–max), on every frame and on
+    the night frames of each split."""
+    head = ["Modality", "seeds", *(c[0] for c in MODALITY_COLS)]
+    lines = [
+        "**Modality over seeds: R@1m, mean (min–max) over the seeds measured**",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * len(head),
+    ]
+    for label, names in MODALITY_SEEDS.items():
+        cells = []
+        for _, split, lighting in MODALITY_COLS:
+            st = seed_stats(data, names, split, lighting)
+            cells.append("–" if st is None else f"{st[1]:.1f} ({min(st[0]):.1f}–{max(st[0]):.1f})")
+        measured = [n for n in names if n in data and data[n]["results"] is not None]
+        seeds = ", ".join(str(names.index(n)) for n in measured) or "none"
+        if len(_commits(data, names)) > 1:
+            seeds += " (different commits: no mean)"
+        lines.append(f"| {label} | {seeds} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _modality_figure(path, data):
+    """Bars of each modality's seed-mean R@1m per column of the modality table, whiskers from
+    the lowest to the highest seed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, ax = plt.subplots(figsize=(6.4, 3.4), dpi=100)
+    x = np.arange(len(MODALITY_COLS))
+    width = 0.8 / len(MODALITY_SEEDS)
+    for i, (label, names) in enumerate(MODALITY_SEEDS.items()):
+        stats = [seed_stats(data, names, split, lt) for _, split, lt in MODALITY_COLS]
+        xs = [x[j] + (i - 1) * width for j, st in enumerate(stats) if st]
+        means = [st[1] for st in stats if st]
+        shown = [st for st in stats if st]
+        err = [[st[1] - min(st[0]) for st in shown], [max(st[0]) - st[1] for st in shown]]
+        bars = ax.bar(xs, means, width, yerr=err, capsize=3, label=label)
+        ax.bar_label(bars, fmt="%.0f", fontsize=7, padding=2)
+    ax.set_xticks(x, [c[0] for c in MODALITY_COLS], fontsize=8)
+    ax.set_ylim(0, 100)
+    ax.set_ylabel("R@1m (%)")
+    ax.set_title("Modality (HD map): the mean over seeds, whiskers from min to max", fontsize=9)
+    ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.12), frameon=False)
+    fig.tight_layout()
+    tmp = path + ".tmp.png"
+    fig.savefig(tmp)
+    plt.close(fig)
+    os.replace(tmp, path)
 
 
 def collect(data, budget: str, out_md: str, fig_dir: str, note: str = "") -> str:
@@ -311,7 +424,7 @@ def collect(data, budget: str, out_md: str, fig_dir: str, note: str = "") -> str
         ),
         (
             "modality",
-            "Modality (HD map, same budget; not in the paper), Helsinki test",
+            "Modality (HD map, same budget; not in the paper), Helsinki test, seed 0",
             [("camera only", "camera"), ("LiDAR only", "lidar"), ("fused", "hd")],
             "test",
         ),
@@ -334,7 +447,12 @@ def collect(data, budget: str, out_md: str, fig_dir: str, note: str = "") -> str
                 + ", ".join(f"{n.upper()} {a} → {b}" for n, (a, b) in PAPER["III"].items())
             )
         fig = os.path.join(fig_dir, f"results_{key.lower()}.png")
-        _figure(fig, title, rows, data, split)
+        if key == "modality":  # seed 0's full row above, every seed's R@1m below
+            parts += ["", _modality_table(data)]
+            _modality_figure(fig, data)
+            title = "Modality over seeds, R@1m"
+        else:
+            _figure(fig, title, rows, data, split)
         parts += ["", f"![{title}]({os.path.join(rel, os.path.basename(fig))})", ""]
         if key == "III":  # the same rows on both cities side by side
             parts.append("")

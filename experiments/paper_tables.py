@@ -69,6 +69,11 @@ JOBS = (
     Job("lidar", "train", ("model.modality=lidar",)),
     Job("hd_seed1", "train", ("train.seed=1",)),
     Job("hd_seed2", "train", ("train.seed=2",)),
+    # Seeds 1 and 2 of each single modality: the modality findings compare 3-seed means.
+    Job("camera_seed1", "train", ("model.modality=camera", "train.seed=1")),
+    Job("camera_seed2", "train", ("model.modality=camera", "train.seed=2")),
+    Job("lidar_seed1", "train", ("model.modality=lidar", "train.seed=1")),
+    Job("lidar_seed2", "train", ("model.modality=lidar", "train.seed=2")),
 )
 BY_NAME = {j.name: j for j in JOBS}
 

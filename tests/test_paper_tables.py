@@ -163,9 +163,24 @@ def test_findings_weigh_the_deciding_gap_against_the_seed_range():
     assert road[1] is True and road[3] == "gap 3.0 ≤ seed range 5.0"
     assert both[1] is True and both[3] == "gap 7.0 > seed range 5.0"
     assert by_text["I: HD > NM > SD at R@1m (test)"][1] is None
+
+    def modality(data):
+        return {f[0]: f[1:] for f in mod.findings(data) if f[0].startswith("Modality")}
+
     data.update(camera=row(8.0), lidar=row(60.0))  # the fused row at seed 0 is hd
-    modality = [f for f in mod.findings(data) if f[0].startswith("Modality")]
-    assert [m[1:] for m in modality] == [(False, "54.0 / 8.0 / 60.0", "gap 6.0 > seed range 5.0")]
+    test = "Modality (not in the paper): fused beats camera only and LiDAR only (R@1m test, mean"
+    # fused: the mean of its 2 seeds; one LiDAR seed: no range of its own to weigh the gap
+    assert modality(data)[f"{test} of 2 / 1 / 1 seeds: fused, camera, LiDAR)"] == (
+        False,
+        "56.5 / 8.0 / 60.0",
+        "–",
+    )
+    data.update(lidar_seed1=row(52.0), hd_seed2=row(58.0))  # LiDAR range 8.0, fused 5.0
+    assert modality(data)[f"{test} of 3 / 1 / 2 seeds: fused, camera, LiDAR)"] == (
+        True,
+        "57.0 / 8.0 / 56.0",
+        "gap 1.0 ≤ their seed range 8.0",
+    )
 
 
 def test_rows_from_different_commits_are_not_compared():
@@ -259,3 +274,23 @@ def test_nm_row_shows_its_iou_and_a_redefined_job_is_not_reported(tmp_path):
     res["splits"]["kouvola"] = {"R@1m": 70.0, "IoU_road": 12.0}
     collapse = [f for f in mod.findings(data) if f[0].startswith("NM: its segmentation")]
     assert collapse[0][1:3] == (False, "0.1 / 12.0")
+
+
+def test_modality_table_shows_seed_means_and_night_frames():
+    mod = _module()
+    import paper_report
+
+    def row(r1, night, commit="c"):
+        split = {"R@1m": r1, "lighting": {"night": {"R@1m": night}}}
+        return {"results": {"splits": {"test": split}}, "commit": commit}
+
+    data = {n: {"results": None} for n in mod.BY_NAME}
+    data.update(hd=row(60.0, 50.0), hd_seed1=row(64.0, 40.0), lidar=row(55.0, 45.0))
+    table = paper_report._modality_table(data)
+    assert "| fused | 0, 1 | 62.0 (60.0–64.0) | – | 45.0 (40.0–50.0) | – |" in table
+    assert "| LiDAR only | 0 | 55.0 (55.0–55.0) | – | 45.0 (45.0–45.0) | – |" in table
+    assert "| camera only | none | – | – | – | – |" in table
+    data["lidar_seed2"] = row(57.0, 45.0, commit="other")
+    assert "| LiDAR only | 0, 2 (different commits: no mean) | – | – | – | – |" in (
+        paper_report._modality_table(data)
+    )
