@@ -203,6 +203,12 @@ def test_rows_from_different_commits_are_not_compared():
     assert not [f for f in mod.findings(data) if f[0].startswith("seed spread")]
     data["hd_seed2"]["commit"] = "new"
     assert mod.seed_range(data) == 9.0
+    # the unseen city's spread counts too: three seeds can agree on one split by chance
+    for name, unseen in (("hd", 50.0), ("hd_seed1", 61.0)):
+        data[name]["results"]["splits"]["kouvola"] = {"R@1m": unseen}
+    assert mod.seed_range(data) == 11.0
+    for name in ("hd", "hd_seed1"):
+        del data[name]["results"]["splits"]["kouvola"]
     by_text = {f[0]: f for f in mod.findings(data)}
     road = by_text["IV: drivable area alone beats buildings alone (R@1m)"]
     assert road[1:] == (True, "47.0 / 44.0", "–")  # the seeds' range is the new code's
