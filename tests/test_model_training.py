@@ -167,35 +167,6 @@ def test_the_camera_aux_loss_is_the_focal_loss_of_the_camera_latent_alone():
         dataclasses.replace(TINY, camera_aux_weight=-1.0)
 
 
-def test_lidar_dropout_zeroes_whole_samples_lidar_in_training_only():
-    """``model.lidar_dropout``: in a training forward pass a dropped sample's BEV does not
-    depend on its LiDAR points, a kept sample's is the inference BEV; inference ignores the
-    option; it needs an rng and the fused modality."""
-    cfg = dataclasses.replace(TINY, lidar_dropout=0.5, transformer_layers=1)
-    batch = _batch(5, size=6)
-    moved = dict(batch, points=batch["points"] + 1.0)
-    params = api.init(_key(4), batch, cfg)
-
-    @jax.jit
-    def run(b, rng):
-        return api.forward(params, b, cfg, train=True, rng=rng)[0], api.forward(params, b, cfg)[0]
-
-    rng = jax.random.key(7)
-    (train, infer), (train_moved, infer_moved) = run(batch, rng), run(moved, rng)
-    dropped = np.all(np.asarray(train) == np.asarray(train_moved), axis=(1, 2, 3))
-    assert 0 < dropped.sum() < len(dropped), dropped  # this key drops some samples, not all
-    np.testing.assert_array_equal(np.asarray(train)[~dropped], np.asarray(infer)[~dropped])
-    assert not np.allclose(np.asarray(infer), np.asarray(infer_moved))  # the points matter
-    plain = api.forward(params, batch, dataclasses.replace(cfg, lidar_dropout=0.0))[0]
-    np.testing.assert_allclose(np.asarray(infer), np.asarray(plain), rtol=1e-4, atol=1e-4)
-    with pytest.raises(ValueError, match="rng"):
-        api.forward(params, batch, cfg, train=True)
-    for bad in ({"lidar_dropout": 1.0}, {"lidar_dropout": 0.2, "modality": "lidar"}):
-        with pytest.raises(ValueError, match="lidar_dropout"):
-            dataclasses.replace(TINY, **bad)
-    assert TINY.lidar_dropout == 0.0 and preset("paper").lidar_dropout == 0.0
-
-
 def _best_constant_focal(labels: np.ndarray, alpha: float, gamma: float) -> float:
     """Smallest mean focal loss of a predictor that outputs one logit per class everywhere
     (the per-class bias alone), by a dense search over the logit."""

@@ -49,15 +49,12 @@ def forward(
 ) -> tuple[jax.Array, dict]:
     """``(bev_logits (B, C, 128, 128), aux)``; see :class:`SegLocNet` for ``aux``.
 
-    ``train`` enables dropout and the LiDAR's modality dropout (``rng`` required when
-    ``cfg.dropout > 0`` or ``cfg.lidar_dropout > 0``). ``map_side=False``: the NM map side
-    (``aux["map_match"]``) left out, for :func:`encode_map` per tile.
+    ``train`` enables dropout (``rng`` required when ``cfg.dropout > 0``). ``map_side=False``:
+    the NM map side (``aux["map_match"]``) left out, for :func:`encode_map` per tile.
     """
-    deterministic = not train or (cfg.dropout == 0.0 and cfg.lidar_dropout == 0.0)
+    deterministic = not train or cfg.dropout == 0.0
     if not deterministic and rng is None:
-        raise ValueError(
-            "forward(train=True) with model.dropout or model.lidar_dropout > 0 needs an rng key"
-        )
+        raise ValueError("forward(train=True) with model.dropout > 0 needs an rng key")
     rngs = None if deterministic else {"dropout": rng}
     inputs = _model_inputs(batch, cfg, map_side)
     return build(cfg).apply(

@@ -68,9 +68,6 @@ class ModelConfig:
         conv to the classes on its 16x16 cells, against the GT averaged over each cell), so
         that the camera branch learns the BEV where the LiDAR already explains it (fused
         modality only, as ``lidar_skips`` applies to LiDAR modalities only).
-      lidar_dropout: fused training only: the probability that a sample's LiDAR features (its
-        latent and its decoder skips) are zeroed for that step, so that the decoder learns to
-        read the camera latent (modality dropout; inference always uses both).
       nm_dim: D' matching channels (NM); nm_widths: neural-map U-Net channels per level.
       nm_num_rotations: K of the training score volume (NM; multiple of 4).
       nm_init_scale: initial value of the learned factor on the cosine score volume.
@@ -113,7 +110,6 @@ class ModelConfig:
     focal_alpha: float = 0.25
     focal_gamma: float = 2.0
     camera_aux_weight: float = 0.0
-    lidar_dropout: float = 0.0
     # neural map (variant "nm")
     nm_dim: int = 8
     nm_widths: tuple[int, ...] = (16, 32, 64)
@@ -193,10 +189,6 @@ class ModelConfig:
             bad("nm_init_scale", "> 0")
         if self.camera_aux_weight < 0:
             bad("camera_aux_weight", ">= 0")
-        if not 0.0 <= self.lidar_dropout < 1.0:
-            bad("lidar_dropout", "in [0, 1)")
-        if self.lidar_dropout > 0 and self.modality != "fused":
-            bad("lidar_dropout", f"0 unless model.modality is 'fused' (got {self.modality!r})")
 
     @property
     def camera_aux(self) -> bool:

@@ -9,7 +9,6 @@ and figures never need to re-run parts of the model.
 from __future__ import annotations
 
 import flax.linen as nn
-import jax
 import jax.numpy as jnp
 
 from seglocnet_jax.model.camera import CameraEncoder, camera_skip_key
@@ -90,12 +89,6 @@ class SegLocNet(nn.Module):
             lid, lidar_skips = LidarEncoder(cfg, name="lidar")(
                 batch["points"], batch["points_mask"]
             )
-            if cfg.lidar_dropout > 0 and not deterministic:  # modality dropout, per sample
-                keep = jax.random.bernoulli(
-                    self.make_rng("dropout"), 1.0 - cfg.lidar_dropout, (lid.shape[0], 1, 1, 1)
-                ).astype(lid.dtype)
-                lid = lid * keep
-                lidar_skips = {k: v * keep for k, v in lidar_skips.items()}
             aux["lidar_latent"] = lid
             latents.append(lid)
             if cfg.lidar_skips:
