@@ -31,9 +31,12 @@ HEAD = {c: c.replace("deg", "°") for c in COLS}
 IOU = ("IoU_road", "IoU_building")
 
 
-def _num(res, split, key):
+def _num(res, split, key, lighting=None):
+    """``key`` of a stored row on ``split`` (on the frames of one ``lighting``, from
+    ``results.splits[split].lighting``, when given); None where not measured."""
     try:
-        v = res["results"]["splits"][split][key]
+        v = res["results"]["splits"][split]
+        v = (v["lighting"][lighting] if lighting else v)[key]
     except (KeyError, TypeError):
         return None
     return None if v is None or (isinstance(v, float) and math.isnan(v)) else float(v)
@@ -75,6 +78,17 @@ def _row_table(title, rows, data, split, paper=None, paper_label="paper"):
     return "\n".join(lines)
 
 
+def _save(fig, path):
+    """Writes a figure to ``path`` through a temporary name, then closes it."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    tmp = path + ".tmp.png"
+    fig.savefig(tmp)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
 def _figure(path, title, groups, data, split):
     """Grouped bars of R@1m / R@5m / R@1° per row."""
     import matplotlib
@@ -100,11 +114,7 @@ def _figure(path, title, groups, data, split):
     ax.set_ylabel("recall (%)")
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.28), frameon=False)
-    fig.tight_layout()
-    tmp = path + ".tmp.png"
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, path)
+    _save(fig, path)
 
 
 SEEDS = ("hd", "hd_seed1", "hd_seed2")
@@ -123,16 +133,6 @@ MODALITY_COLS = (
 )
 
 
-def _night_num(res, split, lighting, key="R@1m"):
-    """``key`` on the frames of one lighting (``results.splits[split].lighting``); None where
-    not measured."""
-    try:
-        v = res["results"]["splits"][split]["lighting"][lighting][key]
-    except (KeyError, TypeError):
-        return None
-    return None if v is None or (isinstance(v, float) and math.isnan(v)) else float(v)
-
-
 def seed_stats(data, names, split, lighting=None, key="R@1m"):
     """``(values, mean, range)`` of ``key`` over the measured rows among ``names`` (one value
     per seed); None when none is measured or the measured ones ran at different commits (a
@@ -140,7 +140,7 @@ def seed_stats(data, names, split, lighting=None, key="R@1m"):
     if len(_commits(data, names)) > 1:
         return None  # the findings say "rows from different commits"
     vals = [
-        _num(data[n], split, key) if lighting is None else _night_num(data[n], split, lighting, key)
+        _num(data[n], split, key, lighting)
         for n in names
         if n in data and data[n]["results"] is not None
     ]
@@ -354,21 +354,16 @@ def _modality_figure(path, data):
     for i, (label, names) in enumerate(MODALITY_SEEDS.items()):
         stats = [seed_stats(data, names, split, lt) for _, split, lt in MODALITY_COLS]
         xs = [x[j] + (i - 1) * width for j, st in enumerate(stats) if st]
-        means = [st[1] for st in stats if st]
         shown = [st for st in stats if st]
         err = [[st[1] - min(st[0]) for st in shown], [max(st[0]) - st[1] for st in shown]]
-        bars = ax.bar(xs, means, width, yerr=err, capsize=3, label=label)
+        bars = ax.bar(xs, [st[1] for st in shown], width, yerr=err, capsize=3, label=label)
         ax.bar_label(bars, fmt="%.0f", fontsize=7, padding=2)
     ax.set_xticks(x, [c[0] for c in MODALITY_COLS], fontsize=8)
     ax.set_ylim(0, 100)
     ax.set_ylabel("R@1m (%)")
     ax.set_title("Modality (HD map): the mean over seeds, whiskers from min to max", fontsize=9)
     ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.12), frameon=False)
-    fig.tight_layout()
-    tmp = path + ".tmp.png"
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, path)
+    _save(fig, path)
 
 
 def collect(data, budget: str, out_md: str, fig_dir: str, note: str = "") -> str:
