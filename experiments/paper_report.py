@@ -63,6 +63,8 @@ def _row_table(title, rows, data, split, paper=None, paper_label="paper"):
         cmd = f"`{d['command']}`"
         if d.get("commit"):
             cmd += f" @{d['commit'][:7]}{'+dirty' if d['commit'].endswith('+dirty') else ''}"
+        if d["results"] is not None:
+            cmd += f" · {_machine(d)}"
         if d["results"] is None:
             vals, ious, cmd = ["not run"] + ["–"] * (len(COLS) - 1), ["–"] * 2, cmd
         lines.append(f"| {label} | " + " | ".join([*vals, *ious, _wall(d), cmd]) + " |")
@@ -156,6 +158,18 @@ def _commits(data, names) -> list[str]:
     return sorted(found, key=str)
 
 
+def _machine(d) -> str:
+    """The short name of the machine a stored row ran on."""
+    from seglocnet_jax.app.runs import machine_label
+
+    return machine_label(d.get("machine"))
+
+
+def _machines(data, names) -> list[str]:
+    """The distinct machines of the measured rows ``names`` (sorted short names)."""
+    return sorted({_machine(data[n]) for n in names if n in data and data[n]["results"]})
+
+
 def seed_range(data) -> float | None:
     """Max - min R@1m over the HD row's measured seeds, the larger of Helsinki test and
     Kouvola (two held-out splits: three seeds can agree closely on one by chance; None: fewer
@@ -197,6 +211,10 @@ def findings(data) -> list[tuple[str, bool | None, str, str]]:
         if any(v is None for v in values):
             out.append((text, None, "not all rows measured", "–"))
             return
+        measured = " / ".join(f"{v:.1f}" for v in values)
+        machines = _machines(data, names)
+        if len(machines) > 1:  # same code, other kernels: differences of a few points
+            measured += f"; rows from {len(machines)} machines ({', '.join(machines)})"
         margin = "–"  # the seed range weighs a gap of the seeds' own code only
         if gap is not None and own_range is not None:
             g = abs(gap(*values))
@@ -204,7 +222,7 @@ def findings(data) -> list[tuple[str, bool | None, str, str]]:
         elif gap is not None and spread is not None and commits == _commits(data, SEEDS):
             g = abs(gap(*values))
             margin = f"gap {g:.1f} {'>' if g > spread else '≤'} seed range {spread:.1f}"
-        out.append((text, bool(check(*values)), " / ".join(f"{v:.1f}" for v in values), margin))
+        out.append((text, bool(check(*values)), measured, margin))
 
     seeds = [r(n) for n in SEEDS]
     add(
@@ -335,6 +353,8 @@ def _modality_table(data) -> str:
         seeds = ", ".join(str(names.index(n)) for n in measured) or "none"
         if len(_commits(data, names)) > 1:
             seeds += " (different commits: no mean)"
+        if len(_machines(data, names)) > 1:
+            seeds += f" ({len(_machines(data, names))} machines)"
         lines.append(f"| {label} | {seeds} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -379,7 +399,9 @@ def collect(data, budget: str, out_md: str, fig_dir: str, note: str = "") -> str
         "generalization test, the paper's Miami → Pittsburgh). Recalls in %, APE in m, AOE in °, "
         "IoU of the predicted BEV in %. The paper's numbers (↳ rows) are on nuScenes (Table I) "
         "and Argoverse (III–V), quoted where the project tracks them. Each command ends with the "
-        "commit it ran at (`@abc1234`). Every row but HD runs with `eval.mode=single` "
+        "commit it ran at (`@abc1234`) and the machine that computed it (the same run differs "
+        "between CPUs in its last digits: XLA's kernels depend on the instruction set). "
+        "Every row but HD runs with `eval.mode=single` "
         "(single-frame evaluation only; at commits before that key existed, single-frame was "
         "all there was); the HD row is the main job and also tracks the drives "
         "(README, sequential localization). The NM row is the paper's SegLocNet-NM: its neural "

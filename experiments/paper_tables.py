@@ -12,6 +12,9 @@ is the app's default one, so the main job (``python -m seglocnet_jax.train``) is
 A job whose ``results.json`` exists is not rerun; an interrupted one resumes from its checkpoint;
 one whose evaluation set was cut off while moving into place (``INCOMPLETE``) is rerun, and
 storing it is refused.
+Rows computed on different machines differ in their last digits (XLA's kernels depend on the
+CPU's instruction set), so each row names its machine and a finding over rows of several machines
+says so.
 ``--extra`` appends overrides to every job (the tests run the set on a tiny dataset that way;
 ``--root`` then gives the jobs their own directories).
 
@@ -241,8 +244,11 @@ def run(jobs, budget: str, extra=(), root=None, store: str | None = None) -> int
 
 
 def load(jobs, budget: str, store: str | None = None) -> dict:
-    """``{job name: {"results", "dir", "command", "commit", "stale"}}`` from the store (results
-    None when the job has no entry). An entry of another job or budget is an error naming it.
+    """``{job name: {"results", "dir", "command", "commit", "machine", "stale"}}`` from the store
+    (results None when the job has no entry; ``machine``: the record of
+    ``seglocnet_jax.app.runs.machine`` in the results, or, for a row run before results
+    recorded it, the entry's own ``machine``, written by hand from ``docs/log.md``; None if
+    neither). An entry of another job or budget is an error naming it.
     An entry whose command is not the job's as defined now (the job was redefined since, e.g.
     NM moved to the SD map and the OSM class raster) is stale: its results are left out (None)
     and ``stale`` holds the command it ran."""
@@ -267,6 +273,7 @@ def load(jobs, budget: str, store: str | None = None) -> dict:
             "dir": entry.get("run_dir") if stale is None else None,
             "command": entry.get("command") if results else shown(command(job, budget)),
             "commit": entry.get("commit") if stale is None else None,
+            "machine": (results or {}).get("machine") or entry.get("machine"),
             "stale": stale,
         }
     return out

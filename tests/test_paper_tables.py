@@ -88,6 +88,10 @@ def test_run_skip_and_collect(tmp_path):
     gt = rows["GT segmentation, HD"].split("|")
     assert float(gt[2]) >= 50.0 and float(gt[6]) >= 50.0  # R@1m, R@1° of GT labels (K = 64)
     assert "@unknown" in rows["SegLocNet-HD"]  # the commit of the code that ran the row
+    from seglocnet_jax.app.runs import machine, machine_label
+
+    assert entry["results"]["machine"]["cpu"] == machine()["cpu"]  # what computed the row
+    assert f"@unknown · {machine_label(machine())}" in rows["SegLocNet-HD"]
     assert "| I: HD > NM > SD at R@1m (test) | – | not all rows measured |" in text
     for key in ("i", "iii", "iv", "v", "modality", "seeds"):
         assert (figs / f"results_{key}.png").stat().st_size > 1000
@@ -215,6 +219,47 @@ def test_rows_from_different_commits_are_not_compared():
     data.update(road=row(47.0, "new"), building=row(44.0, "new"))
     road = {f[0]: f for f in mod.findings(data)}[road[0]]
     assert road[3] == "gap 3.0 ≤ seed range 9.0"
+
+
+def test_rows_from_different_machines_are_compared_and_named(tmp_path):
+    # The same code gives other last digits on another CPU (XLA's kernels follow the
+    # instruction set): a finding over rows of two machines says which.
+    mod = _module()
+    import paper_report
+
+    zen = {"backend": "cpu", "cpu": "AMD EPYC", "isa": ["avx2", "fma"]}
+    xeon = {"backend": "cpu", "cpu": "Intel Xeon", "isa": ["avx2", "fma", "avx512f"]}
+
+    def row(r1, machine):
+        split = {"test": {"R@1m": r1}}
+        return {"results": {"splits": split}, "commit": "c", "machine": machine, "command": "x"}
+
+    data = {n: {"results": None} for n in mod.BY_NAME}
+    data.update(hd=row(63.0, zen), road=row(47.0, zen), building=row(44.0, xeon))
+    by_text = {f[0]: f for f in mod.findings(data)}
+    road = by_text["IV: drivable area alone beats buildings alone (R@1m)"]
+    assert road[1:3] == (
+        True,
+        "47.0 / 44.0; rows from 2 machines (AMD EPYC (no AVX-512), Intel Xeon (AVX-512))",
+    )
+    assert by_text["IV: both together best (R@1m: both, road, building)"][2].startswith(
+        "63.0 / 47.0 / 44.0; rows from 2 machines"
+    )
+    data.update(road=row(47.0, xeon))
+    road = {f[0]: f for f in mod.findings(data)}[road[0]]
+    assert road[1:3] == (True, "47.0 / 44.0")  # one machine: nothing to say
+    data.update(lidar=row(55.0, zen), lidar_seed1=row(57.0, xeon))
+    assert "| LiDAR only | 0, 1 (2 machines) | 56.0 (55.0–57.0) |" in (
+        paper_report._modality_table(data)
+    )
+    table = paper_report._row_table("IV", [("r", "road")], data, "test")
+    assert "· Intel Xeon (AVX-512) |" in table
+    # A row stored before results recorded the machine: the entry's hand-written record.
+    res = {"splits": {"test": {"R@1m": 50.0}}, "config": {"eval": {}}}
+    entry = {"job": "road", "budget": "cpu", "results": res, "machine": zen}
+    entry["command"] = "python -m seglocnet_jax.train map.channels=[road] +budget=cpu"
+    (tmp_path / "road.json").write_text(json.dumps(entry))
+    assert mod.load([mod.BY_NAME["road"]], "cpu", str(tmp_path))["road"]["machine"] == zen
 
 
 def _module():

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import platform
 import time
 
 from seglocnet_jax import fileio, metrics
@@ -234,9 +235,62 @@ def check_checkpoint_compatible(checkpoint: str, cfg: ExperimentConfig) -> None:
         )
 
 
+# CPU features that change which kernels XLA emits, and so the last digits of a training run
+# (the same run differed by up to 1.7 R@1m points between an AMD EPYC and an Intel Xeon).
+ISA_FLAGS = ("avx2", "fma", "avx512f", "avx512_bf16", "amx_tile")
+
+
+def machine() -> dict:
+    """What computed the numbers: the JAX backend and its devices, and the CPU (``/proc/cpuinfo``
+    on Linux: model name, family, model and the :data:`ISA_FLAGS` it has; elsewhere
+    ``platform.processor()`` and no flags) with the cores this process may use."""
+    import jax
+
+    devices = jax.devices()
+    cpu = {"name": platform.processor() or platform.machine(), "family": None, "model": None}
+    flags = None
+    try:
+        with open("/proc/cpuinfo") as f:
+            block = f.read().split("\n\n")[0]
+    except OSError:
+        block = ""
+    fields = dict(
+        (k.strip(), v.strip()) for k, _, v in (ln.partition(":") for ln in block.splitlines())
+    )
+    if "model name" in fields:
+        cpu["name"] = fields["model name"]
+        cpu["family"] = fields.get("cpu family")
+        cpu["model"] = fields.get("model")
+        flags = [f for f in ISA_FLAGS if f in fields.get("flags", "").split()]
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return {
+        "backend": jax.default_backend(),
+        "devices": f"{len(devices)} x {devices[0].device_kind}",
+        "cpu": cpu["name"],
+        "cpu_family": cpu["family"],
+        "cpu_model": cpu["model"],
+        "isa": flags,
+        "cores": cores,
+        "jax": jax.__version__,
+    }
+
+
+def machine_label(info: dict | None) -> str:
+    """A short name of :func:`machine`'s record: the accelerator, or the CPU with its widest
+    vector unit (``"unknown machine"`` for a row stored without one)."""
+    if not info:
+        return "unknown machine"
+    if info.get("backend") not in (None, "cpu"):
+        return str(info.get("devices"))
+    isa = info.get("isa")
+    width = "ISA unknown" if isa is None else ("AVX-512" if "avx512f" in isa else "no AVX-512")
+    return f"{info.get('cpu')} ({width})"
+
+
 def write_results(workdir: str, cfg: ExperimentConfig, results: dict, extra: dict) -> str:
-    """``<workdir>/results.json`` (atomic), with the config that produced the numbers
-    (``workdir``: the staging directory of an :class:`evalset.OutputSet`)."""
+    """``<workdir>/results.json`` (atomic), with the config that produced the numbers and the
+    :func:`machine` that computed them (``workdir``: the staging directory of an
+    :class:`evalset.OutputSet`)."""
     path = os.path.join(workdir, RESULTS)
     payload = {
         "experiment": cfg.name,
@@ -245,6 +299,7 @@ def write_results(workdir: str, cfg: ExperimentConfig, results: dict, extra: dic
         "bev_source": cfg.eval.bev_source,
         "splits": results,
         **extra,
+        "machine": machine(),
         "config": config_dict(cfg),
     }
     fileio.write_json_atomic(path, payload, indent=2, sort_keys=False)
