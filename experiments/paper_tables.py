@@ -43,7 +43,8 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 if _HERE not in sys.path:  # loaded by path (the tests): its sibling module is importable too
     sys.path.insert(0, _HERE)
 
-from paper_report import PAPER, collect, findings, seed_range  # noqa: E402
+from paper_findings import findings, seed_range  # noqa: E402
+from paper_report import PAPER, collect  # noqa: E402
 
 __all__ = ["JOBS", "BY_NAME", "PAPER", "run", "load", "collect", "findings", "seed_range"]
 

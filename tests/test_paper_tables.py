@@ -297,11 +297,12 @@ def test_nm_job_is_the_papers_nm_measured_beside_hd_and_sd():
 
 def test_nm_row_shows_its_iou_and_a_redefined_job_is_not_reported(tmp_path):
     mod = _module()
-    import paper_report  # the sibling module paper_tables put on the path
+    import paper_findings  # the sibling modules paper_tables put on the path
+    import paper_report
 
     from seglocnet_jax.app import train_run
 
-    assert paper_report.NM_MIN_ROAD_IOU == train_run.NM_MIN_ROAD_IOU  # one threshold
+    assert paper_findings.NM_MIN_ROAD_IOU == train_run.NM_MIN_ROAD_IOU  # one threshold
     old = "python -m seglocnet_jax.train model.variant=nm +budget=cpu"  # the HD-map NM
     res = {"splits": {"test": {"R@1m": 82.3, "IoU_road": 0.1}}, "config": {"eval": {}}}
     (tmp_path / "nm.json").write_text(

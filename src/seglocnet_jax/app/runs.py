@@ -247,29 +247,21 @@ def machine() -> dict:
     import jax
 
     devices = jax.devices()
-    cpu = {"name": platform.processor() or platform.machine(), "family": None, "model": None}
-    flags = None
     try:
         with open("/proc/cpuinfo") as f:
-            block = f.read().split("\n\n")[0]
+            block = f.read().split("\n\n")[0]  # the first processor's fields
     except OSError:
         block = ""
-    fields = dict(
-        (k.strip(), v.strip()) for k, _, v in (ln.partition(":") for ln in block.splitlines())
-    )
-    if "model name" in fields:
-        cpu["name"] = fields["model name"]
-        cpu["family"] = fields.get("cpu family")
-        cpu["model"] = fields.get("model")
-        flags = [f for f in ISA_FLAGS if f in fields.get("flags", "").split()]
+    fields = {k.strip(): v.strip() for k, _, v in (ln.partition(":") for ln in block.splitlines())}
+    known = "model name" in fields
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return {
         "backend": jax.default_backend(),
         "devices": f"{len(devices)} x {devices[0].device_kind}",
-        "cpu": cpu["name"],
-        "cpu_family": cpu["family"],
-        "cpu_model": cpu["model"],
-        "isa": flags,
+        "cpu": fields["model name"] if known else platform.processor() or platform.machine(),
+        "cpu_family": fields.get("cpu family"),
+        "cpu_model": fields.get("model"),
+        "isa": [f for f in ISA_FLAGS if f in fields.get("flags", "").split()] if known else None,
         "cores": cores,
         "jax": jax.__version__,
     }
