@@ -11,7 +11,7 @@ import os
 from paper_findings import (
     MODALITY_COLS,
     MODALITY_SEEDS,
-    NM_MIN_ROAD_IOU,
+    NM_MIN_IOU,
     _cell,
     _commits,
     _machine,
@@ -188,7 +188,7 @@ def collect(data, budget: str, out_md: str, fig_dir: str, note: str = "") -> str
         "map reads the multi-class OSM raster (road classes, paths, buildings, parking, green, "
         "water), its segmentation term and priors use the SD map (10 m); its IoU columns show "
         "whether that segmentation term survived training (the training warns below "
-        f"{NM_MIN_ROAD_IOU:g} % road IoU on validation).",
+        f"{NM_MIN_IOU:g} % IoU of any class on validation).",
         "",
         *([note, ""] if note else []),
     ]

@@ -302,7 +302,7 @@ def test_nm_row_shows_its_iou_and_a_redefined_job_is_not_reported(tmp_path):
 
     from seglocnet_jax.app import train_run
 
-    assert paper_findings.NM_MIN_ROAD_IOU == train_run.NM_MIN_ROAD_IOU  # one threshold
+    assert paper_findings.NM_MIN_IOU == train_run.NM_MIN_IOU  # one threshold
     old = "python -m seglocnet_jax.train model.variant=nm +budget=cpu"  # the HD-map NM
     res = {"splits": {"test": {"R@1m": 82.3, "IoU_road": 0.1}}, "config": {"eval": {}}}
     (tmp_path / "nm.json").write_text(
@@ -325,7 +325,16 @@ def test_nm_row_shows_its_iou_and_a_redefined_job_is_not_reported(tmp_path):
     assert collapse == [(collapse[0][0], None, "not all rows measured", "–")]  # no Kouvola
     res["splits"]["kouvola"] = {"R@1m": 70.0, "IoU_road": 12.0}
     collapse = [f for f in mod.findings(data) if f[0].startswith("NM: its segmentation")]
-    assert collapse[0][1:3] == (False, "0.1 / 12.0")
+    assert collapse[0][1:3] == (None, "not all rows measured")  # no building IoU
+    # Every class counts: healthy roads do not hide collapsed buildings (road test, Kouvola,
+    # then building test, Kouvola).
+    res["splits"]["test"].update(IoU_road=20.3, IoU_building=0.6)
+    res["splits"]["kouvola"]["IoU_building"] = 0.7
+    collapse = [f for f in mod.findings(data) if f[0].startswith("NM: its segmentation")]
+    assert collapse[0][1:3] == (False, "20.3 / 12.0 / 0.6 / 0.7")
+    res["splits"]["test"]["IoU_building"] = res["splits"]["kouvola"]["IoU_building"] = 5.0
+    collapse = [f for f in mod.findings(data) if f[0].startswith("NM: its segmentation")]
+    assert collapse[0][1:3] == (True, "20.3 / 12.0 / 5.0 / 5.0")
 
 
 def test_modality_table_shows_seed_means_and_night_frames():

@@ -27,22 +27,30 @@ from seglocnet_jax.training.logger import MetricsLogger
 
 progress = runs.progress
 
-# An NM model's validation road IoU (percent) below this is reported as a collapsed
-# segmentation term (a warning line, not an error: its matching features may still localize,
-# but its BEV no longer segments, unlike the paper's NM trained with both terms).
-NM_MIN_ROAD_IOU = 5.0
+# An NM model's validation IoU (percent) of any segmentation class below this is reported as a
+# collapsed segmentation term for that class (a warning line, not an error: its matching
+# features may still localize, but its BEV no longer segments that class, unlike the paper's
+# NM trained with both terms).
+NM_MIN_IOU = 5.0
 
 
 def warn_collapsed_segmentation(cfg: ExperimentConfig, val: dict, step: int) -> str | None:
-    """Prints (and returns) the warning of an NM model whose validation ``IoU_road`` is below
-    :data:`NM_MIN_ROAD_IOU`; None otherwise (a seg model, no road channel, a healthy IoU)."""
-    iou = val.get("IoU_road")
-    if cfg.model.variant != "nm" or iou is None or iou >= NM_MIN_ROAD_IOU:
+    """Prints (and returns) the warning of an NM model whose validation ``IoU_<class>`` is below
+    :data:`NM_MIN_IOU` for one class or more, naming each; None otherwise (a seg model, no IoU,
+    every class healthy)."""
+    collapsed = {
+        key.removeprefix("IoU_"): iou
+        for key, iou in val.items()
+        if key.startswith("IoU_") and iou is not None and iou < NM_MIN_IOU
+    }
+    if cfg.model.variant != "nm" or not collapsed:
         return None
+    listed = ", ".join(f"{name} {iou:.1f} %" for name, iou in collapsed.items())
     msg = (
-        f"[seglocnet] warning: NM model at step {step}: validation road IoU {iou:.1f} % < "
-        f"{NM_MIN_ROAD_IOU:g} %: its segmentation term has collapsed (the BEV no longer "
-        "segments roads; the pose loss alone drives it). Consider a larger model.seg_weight"
+        f"[seglocnet] warning: NM model at step {step}: validation IoU {listed} < "
+        f"{NM_MIN_IOU:g} %: its segmentation term has collapsed for "
+        f"{'this class' if len(collapsed) == 1 else 'these classes'} (the BEV no longer "
+        "segments it; the pose loss alone drives it). Consider a larger model.seg_weight"
     )
     print(msg, flush=True)
     return msg
