@@ -49,13 +49,26 @@ def app_config(overrides=()) -> ExperimentConfig:
         return build_experiment(hydra_glue.to_tree(compose("config", overrides=list(overrides))))
 
 
-def _restore(cfg: ExperimentConfig, checkpoint: str, evaluator: Evaluator, example: dict):
+def restore(cfg: ExperimentConfig, checkpoint: str, evaluator: Evaluator, example: dict):
     """The parameters of ``checkpoint``, checked against ``cfg``'s network, on the evaluation
     mesh; and the step restored."""
     runs.check_checkpoint_compatible(checkpoint, cfg)
     target, _ = init_state(cfg, example)
     state, step = ckpt_lib.restore_params(checkpoint, jax.device_get(target))
     return evaluator.replicate(state.params), step
+
+
+def frames(evaluator: Evaluator, split: str, max_batches: int | None = None):
+    """The first ``max_batches`` batches of ``split`` (None: all), with a progress bar:
+    ``(batch, placed, valid, gt)``: the host batch, the batch on the evaluation mesh, the rows
+    that are frames (not padding) and their GT poses ``(n, 3)``."""
+    ld = evaluator.loader(split)
+    total = ld.batches_per_epoch if max_batches is None else min(max_batches, ld.batches_per_epoch)
+    batches = itertools.islice(iter(ld), total)
+    for batch in tqdm(batches, total=total, desc=split, unit="batch"):
+        valid = np.asarray(batch.get("valid", np.ones(len(batch["pose"]), bool)), bool)
+        gt = np.asarray(batch["pose"], np.float64)[valid]
+        yield batch, evaluator.place(batch), valid, gt
 
 
 def late_fusion(
@@ -68,8 +81,8 @@ def late_fusion(
     cfg_l = app_config([*overrides, "model.modality=lidar"])
     evaluator = Evaluator(base, prepare_dataset(base), step_lib.make_mesh(None), workdir="")
     example = evaluator.place(next(iter(evaluator.loader(splits[0]))))
-    params_c, step_c = _restore(cfg_c, camera, evaluator, example)
-    params_l, step_l = _restore(cfg_l, lidar, evaluator, example)
+    params_c, step_c = restore(cfg_c, camera, evaluator, example)
+    params_l, step_l = restore(cfg_l, lidar, evaluator, example)
     print(f"camera {camera} step {step_c}, LiDAR {lidar} step {step_l}", file=sys.stderr)
     net_c = evaluation.make_localize_step(cfg_c.model, base.solver)
     net_l = evaluation.make_localize_step(cfg_l.model, base.solver)
@@ -77,17 +90,9 @@ def late_fusion(
     for split in splits:
         acc = {w: metrics.MetricAccumulator() for w in weights}
         night = {w: metrics.MetricAccumulator() for w in weights}
-        ld = evaluator.loader(split)
-        total = (
-            ld.batches_per_epoch if max_batches is None else min(max_batches, ld.batches_per_epoch)
-        )
-        batches = itertools.islice(iter(ld), total)
-        for batch in tqdm(batches, total=total, desc=split, unit="batch"):
-            placed = evaluator.place(batch)
+        for batch, placed, valid, gt in frames(evaluator, split, max_batches):
             bev_c = net_c.network(params_c, placed)["template"]
             bev_l = net_l.network(params_l, placed)["template"]
-            valid = np.asarray(batch.get("valid", np.ones(len(batch["pose"]), bool)), bool)
-            gt = np.asarray(batch["pose"], np.float64)[valid]
             dark = np.asarray(batch["lighting"])[valid] == "night"
             for w in weights:
                 comb = bev_l + w * bev_c

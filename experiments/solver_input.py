@@ -25,16 +25,13 @@ paper's recalls and APE / AOE.
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import os
 import sys
 
 import jax
 import jax.numpy as jnp
-import numpy as np
-from late_fusion import KEYS, _restore, app_config
-from tqdm import tqdm
+from late_fusion import KEYS, app_config, frames, restore
 
 from seglocnet_jax import evaluation, metrics, solver
 from seglocnet_jax.app.datasets import prepare_dataset
@@ -64,22 +61,14 @@ def solver_input(
         raise SystemExit(f"model.variant={cfg.model.variant}: only a seg model's BEV is logits")
     evaluator = Evaluator(base, prepare_dataset(base), step_lib.make_mesh(None), workdir="")
     example = evaluator.place(next(iter(evaluator.loader(splits[0]))))
-    params, step = _restore(cfg, checkpoint, evaluator, example)
+    params, step = restore(cfg, checkpoint, evaluator, example)
     print(f"{checkpoint} step {step}", file=sys.stderr)
     net = evaluation.make_localize_step(cfg.model, base.solver)
     out = {}
     for split in splits:
         acc = {t: metrics.MetricAccumulator() for t in transforms}
-        ld = evaluator.loader(split)
-        total = (
-            ld.batches_per_epoch if max_batches is None else min(max_batches, ld.batches_per_epoch)
-        )
-        batches = itertools.islice(iter(ld), total)
-        for batch in tqdm(batches, total=total, desc=split, unit="batch"):
-            placed = evaluator.place(batch)
+        for batch, placed, valid, gt in frames(evaluator, split, max_batches):
             logits = net.network(params, placed)["template"]
-            valid = np.asarray(batch.get("valid", np.ones(len(batch["pose"]), bool)), bool)
-            gt = np.asarray(batch["pose"], np.float64)[valid]
             for t in transforms:
                 res = jax.device_get(net.solve(params, {"template": TRANSFORMS[t](logits)}, placed))
                 pose = solver.tile_pose_to_world(res["pose_tile"], batch["tile_center"])[valid]
