@@ -347,3 +347,49 @@ def test_hydra_presets_match_python_presets(name):
     cfg = from_dict(ModelConfig, tree, "model")
     assert cfg == preset(name)
     assert dataclasses.replace(cfg, modality="camera").use_lidar is False
+
+
+def test_ground_features_sample_each_cell_where_the_cameras_see_it():
+    """Feature maps that are linear in the pixel coordinates are interpolated exactly: each
+    cell's sample is the mean, over the cameras that see its point, of the feature-pixel
+    coordinates of its projection, computed here in NumPy; unseen points read 0."""
+    h, w, stride, size, heights = 16, 40, 4, 8, (0.0, 2.0)
+    intr, cam = synthetic.camera_rig(3, 4 * h, 4 * w)
+    fh, fw = h, w
+    vv, uu = np.meshgrid(*(np.arange(n, dtype=np.float32) for n in (fh, fw)), indexing="ij")
+    stage = np.broadcast_to(np.stack([uu, vv], -1), (1, 3, fh, fw, 2)).copy()
+    got = np.asarray(
+        camera.ground_features(
+            jax.numpy.asarray(stage), intr[None], cam[None], stride, size, heights
+        )
+    )
+    assert got.shape == (1, size, size, len(heights) * 3)
+    cells = camera.bev_reference_points(size).reshape(-1, 2) * 32.0
+    want = np.zeros((size * size, len(heights), 2))
+    seen = np.zeros((size * size, len(heights)))
+    for i in range(3):
+        to_cam = np.linalg.inv(np.asarray(cam[i], np.float64))
+        for k, z in enumerate(heights):
+            pts = np.concatenate([cells, np.full((len(cells), 1), z)], 1)
+            c = pts @ to_cam[:3, :3].T + to_cam[:3, 3]
+            uv = c @ np.asarray(intr[i], np.float64).T
+            with np.errstate(divide="ignore", invalid="ignore"):
+                f = (uv[:, :2] / c[:, 2:] - (stride - 1) / 2) / stride
+            ok = (c[:, 2] > 0.1) & (f >= 0).all(1) & (f[:, 0] <= fw - 1) & (f[:, 1] <= fh - 1)
+            want[ok, k] += f[ok]
+            seen[ok, k] += 1
+    assert 0 < seen.sum() < seen.size  # some points are seen, some not
+    want = want / np.maximum(seen, 1)[..., None]
+    feats = got[..., : 2 * len(heights)].reshape(size * size, len(heights), 2)
+    np.testing.assert_allclose(feats, want, atol=2e-3)
+    np.testing.assert_allclose(got[..., 2 * len(heights) :].reshape(-1, len(heights)), seen / 3)
+
+
+def test_the_ground_skip_enters_the_decoder_at_64():
+    batch = synthetic.make_batch(0, 2, num_cams=3, image_hw=(32, 96), num_points=256)
+    for modality in ("camera", "fused"):
+        cfg = preset("tiny", modality=modality, camera_ground_skip=True)
+        (logits, _), variables = _shapes(cfg, batch)
+        assert logits.shape == (2, 2, 128, 128)
+        assert "ground_skip64" in variables["params"]["decoder"]
+    assert "ground_skip64" not in _shapes(preset("tiny"), batch)[1]["params"]["decoder"]

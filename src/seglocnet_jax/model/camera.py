@@ -81,6 +81,7 @@ def normalize_ego_points(points: jax.Array, z_range: tuple[float, float]) -> jax
 PILLAR_HEIGHTS = (0.0, 1.0, 2.0, 3.0)  # ego z (m, ground = 0) of the points of a query's pillar
 BIAS_FLOOR = -8.0  # attention logit bias of a token no pillar point projects near
 FINE_TOKENS = 16  # tokens each cell of the fine query grid reads (model.camera_fine_grid)
+GROUND_GRID = 64  # cells of model.camera_ground_skip's grid per side (1 m over +-32 m)
 
 
 def geometric_attention_bias(
@@ -130,6 +131,69 @@ def geometric_attention_bias(
     bias = jnp.maximum(-0.5 * d2, BIAS_FLOOR)  # (B, N, Q, h, w)
     b, n, q = bias.shape[:3]
     return jnp.moveaxis(bias, 2, 1).reshape(b, q, n * feat_hw[0] * feat_hw[1])
+
+
+def ground_features(
+    stage: jax.Array,
+    intrinsics: jax.Array,
+    cam_to_ego: jax.Array,
+    stride: int,
+    size: int,
+    heights=PILLAR_HEIGHTS,
+) -> jax.Array:
+    """Camera features sampled where each cell of a ``size x size`` BEV grid projects: every
+    cell's centre at each of ``heights`` (ego z, m) projected into every camera, the feature
+    map bilinearly interpolated there (feature pixel centres as in
+    :func:`feature_pixel_centers`), averaged over the cameras that see the point (in front of
+    the camera, inside the feature map).
+
+    Args:
+      stage: ``(B, N, h, w, F)`` features of stride ``stride``.
+      intrinsics: ``(B, N, 3, 3)``; cam_to_ego: ``(B, N, 4, 4)`` (OpenCV camera, ego frame).
+      size: the grid is ``size x size`` cells over +-32 m, rows and columns as
+        :func:`bev_reference_points`.
+
+    Returns:
+      ``(B, size, size, H * (F + 1))``: per height the averaged features, then per height the
+      fraction of cameras that see the point.
+    """
+    b, n, fh, fw, f = stage.shape
+    cells = jnp.asarray(bev_reference_points(size).reshape(-1, 2) * PERCEPTION_RANGE)  # (P, 2)
+    hs = jnp.asarray(heights, jnp.float32)
+    pts = jnp.concatenate(
+        [
+            jnp.broadcast_to(cells[:, None], (cells.shape[0], len(heights), 2)),
+            jnp.broadcast_to(hs[None, :, None], (cells.shape[0], len(heights), 1)),
+        ],
+        axis=-1,
+    ).reshape(-1, 3)  # (P * H, 3) ego metres
+    ego_to_cam = jnp.linalg.inv(cam_to_ego)  # (B, N, 4, 4)
+    cam = jnp.einsum("bnij,pj->bnpi", ego_to_cam[..., :3, :3], pts) + ego_to_cam[..., None, :3, 3]
+    pix = jnp.einsum("bnij,bnpj->bnpi", intrinsics, cam)
+    z = cam[..., 2]
+    uv = pix[..., :2] / jnp.maximum(z, 1e-3)[..., None]
+    fu = (uv[..., 0] - (stride - 1) / 2) / stride  # feature pixel coordinates, centres integer
+    fv = (uv[..., 1] - (stride - 1) / 2) / stride
+    seen = (z > 0.1) & (fu >= 0) & (fu <= fw - 1) & (fv >= 0) & (fv <= fh - 1)  # (B, N, PH)
+    u0 = jnp.clip(jnp.floor(fu), 0, fw - 2)
+    v0 = jnp.clip(jnp.floor(fv), 0, fh - 2)
+    wu, wv = jnp.clip(fu - u0, 0, 1), jnp.clip(fv - v0, 0, 1)
+    base = (v0 * fw + u0).astype(jnp.int32)
+    flat = stage.reshape(b, n, fh * fw, f)
+
+    def corner(offset, weight):
+        vals = jnp.take_along_axis(flat, (base + offset)[..., None], axis=2)  # (B, N, PH, F)
+        return vals * weight[..., None]
+
+    sample = corner(0, (1 - wv) * (1 - wu)) + corner(1, (1 - wv) * wu)
+    sample = sample + corner(fw, wv * (1 - wu)) + corner(fw + 1, wv * wu)
+    seen = seen.astype(stage.dtype)
+    count = seen.sum(axis=1)  # (B, PH)
+    mean = (sample * seen[..., None]).sum(axis=1) / jnp.maximum(count, 1.0)[..., None]
+    nh = len(heights)
+    mean = mean.reshape(b, size, size, nh * f)
+    frac = (count / n).reshape(b, size, size, nh)
+    return jnp.concatenate([mean, frac], axis=-1)
 
 
 def fourier_features(x: jax.Array, num_frequencies: int) -> jax.Array:
@@ -201,6 +265,15 @@ class CameraEncoder(nn.Module):
         )(q, q_pos, feats, t_pos, deterministic, bias)
         grid = q.reshape(b, size, size, d)  # (B, size, size, D)
         aux = {"camera_features": x.reshape(b, n, fh, fw, d)}
+        if cfg.camera_ground_skip:  # the stride-4 stage sampled where each 1 m cell projects
+            s4 = stages[0]
+            aux["ground"] = ground_features(
+                s4.reshape((b, n) + s4.shape[1:]),
+                intrinsics.astype(jnp.float32),
+                cam_to_ego.astype(jnp.float32),
+                h // s4.shape[1],
+                GROUND_GRID,
+            )
         if cfg.camera_fine_grid:  # the decoder's camera skip (the latent stays the 16x16 grid)
             aux["skip"] = self._fine_grid(grid, feats, t_pos, intrinsics, cam_to_ego, (fh, fw))
         if size == LATENT_SIZE:
@@ -243,3 +316,9 @@ class CameraEncoder(nn.Module):
 def camera_skip_key(size: int) -> str:
     """Name of the camera's query grid at ``size x size`` among the decoder's skips."""
     return f"camera_grid{size}"
+
+
+def ground_skip_key(size: int) -> str:
+    """Name of the camera's ground-sampled features (``model.camera_ground_skip``) among the
+    decoder's skips."""
+    return f"camera_ground{size}"

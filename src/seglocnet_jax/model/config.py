@@ -54,6 +54,10 @@ class ModelConfig:
         pillar projects nearest to (one cross-attention layer, ``transformer.LocalDecoderLayer``);
         fed to the decoder at its size as a skip. Needs ``camera_queries=16`` and
         ``geometric_attention``.
+      camera_ground_skip: also sample the camera backbone's stride-4 features where each cell
+        of a 64 x 64 (1 m) grid projects at ``camera.PILLAR_HEIGHTS`` (bilinear, averaged over
+        the cameras that see it; ``camera.ground_features``), fed to the decoder at 64 x 64 as
+        a skip: the image's own resolution reaches the BEV without the 4 m latent.
       transformer_layers: DETR-style decoder layers (self-attn, cross-attn, FFN).
       num_heads: attention heads; ffn_dim: FFN hidden width; dropout: in attention and FFN.
       z_min, z_max: LiDAR voxel z range (m, ego frame); voxel_size: metres (x, y, z).
@@ -94,6 +98,7 @@ class ModelConfig:
     geometric_attention: bool = False
     camera_queries: int = 16
     camera_fine_grid: int = 0
+    camera_ground_skip: bool = False
     transformer_layers: int = 2
     num_heads: int = 4
     ffn_dim: int = 128

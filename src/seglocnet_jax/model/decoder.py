@@ -13,7 +13,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from seglocnet_jax.model.camera import camera_skip_key
+from seglocnet_jax.model.camera import camera_skip_key, ground_skip_key
 from seglocnet_jax.model.config import ModelConfig
 from seglocnet_jax.model.layers import ConvNormAct, ResBlock, upsample2x
 from seglocnet_jax.model.lidar import skip_key
@@ -52,10 +52,11 @@ class SemanticDecoder(nn.Module):
                 # Squeeze the z-folded LiDAR features first: the 3x3 conv stays cheap.
                 skip = ConvNormAct(width, (1, 1), name=f"skip{size}")(skip)
                 x = jnp.concatenate([x, skip], axis=-1)
-            skip = (skips or {}).get(camera_skip_key(size))
-            if skip is not None:
-                skip = ConvNormAct(width, (1, 1), name=f"camera_skip{size}")(skip)
-                x = jnp.concatenate([x, skip], axis=-1)
+            for key, name in ((camera_skip_key, "camera_skip"), (ground_skip_key, "ground_skip")):
+                skip = (skips or {}).get(key(size))
+                if skip is not None:
+                    skip = ConvNormAct(width, (1, 1), name=f"{name}{size}")(skip)
+                    x = jnp.concatenate([x, skip], axis=-1)
             # One 3x3 conv per level: the 64 and 128 px levels dominate the model's FLOPs.
             x = ConvNormAct(width, name=f"up{size}")(x)  # (B, size, size, width)
         logits = nn.Conv(cfg.num_classes, (1, 1), name="classifier")(x)  # (B, 128, 128, C)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import flax.linen as nn
 import jax.numpy as jnp
 
-from seglocnet_jax.model.camera import CameraEncoder, camera_skip_key
+from seglocnet_jax.model.camera import CameraEncoder, camera_skip_key, ground_skip_key
 from seglocnet_jax.model.config import ModelConfig
 from seglocnet_jax.model.decoder import Fusion, SemanticDecoder
 from seglocnet_jax.model.lidar import LidarEncoder
@@ -95,6 +95,8 @@ class SegLocNet(nn.Module):
                 skips.update(lidar_skips)
         if cfg.use_camera and "skip" in cam_aux:
             skips[camera_skip_key(cam_aux["skip"].shape[1])] = cam_aux["skip"]
+        if cfg.use_camera and "ground" in cam_aux:
+            skips[ground_skip_key(cam_aux["ground"].shape[1])] = cam_aux["ground"]
         fused = Fusion(cfg.embed_dim, name="fusion")(latents)  # (B, 16, 16, D)
         logits, feats = SemanticDecoder(cfg, name="decoder")(fused, skips)
         aux["bev_latent"] = fused
