@@ -350,24 +350,23 @@ def test_hydra_presets_match_python_presets(name):
 
 
 def test_ground_features_sample_each_cell_where_the_cameras_see_it():
-    """Feature maps that are linear in the pixel coordinates are interpolated exactly: each
-    cell's sample is the mean, over the cameras that see its point, of the feature-pixel
-    coordinates of its projection, computed here in NumPy; unseen points read 0."""
-    h, w, stride, size, heights = 16, 40, 4, 8, (0.0, 2.0)
-    intr, cam = synthetic.camera_rig(3, 4 * h, 4 * w)
-    fh, fw = h, w
-    vv, uu = np.meshgrid(*(np.arange(n, dtype=np.float32) for n in (fh, fw)), indexing="ij")
-    stage = np.broadcast_to(np.stack([uu, vv], -1), (1, 3, fh, fw, 2)).copy()
+    """Feature maps that are linear in the pixel coordinates (plus the camera's index) are
+    interpolated exactly: each cell's sample is the feature-pixel coordinates of its projection
+    into the camera that sees it most frontally, computed here in NumPy; unseen points read 0."""
+    h, w, stride, size, heights, n = 16, 40, 4, 8, (0.0, 2.0), 3
+    intr, cam = synthetic.camera_rig(n, 4 * h, 4 * w)
+    vv, uu = np.meshgrid(*(np.arange(k, dtype=np.float32) for k in (h, w)), indexing="ij")
+    stage = np.stack([np.stack([uu, vv, np.full_like(uu, i)], -1) for i in range(n)])[None]
     got = np.asarray(
         camera.ground_features(
             jax.numpy.asarray(stage), intr[None], cam[None], stride, size, heights
         )
     )
-    assert got.shape == (1, size, size, len(heights) * 3)
+    assert got.shape == (1, size, size, len(heights) * 4)
     cells = camera.bev_reference_points(size).reshape(-1, 2) * 32.0
-    want = np.zeros((size * size, len(heights), 2))
-    seen = np.zeros((size * size, len(heights)))
-    for i in range(3):
+    want = np.zeros((size * size, len(heights), 3))
+    best = np.full((size * size, len(heights)), -2.0)
+    for i in range(n):
         to_cam = np.linalg.inv(np.asarray(cam[i], np.float64))
         for k, z in enumerate(heights):
             pts = np.concatenate([cells, np.full((len(cells), 1), z)], 1)
@@ -375,14 +374,16 @@ def test_ground_features_sample_each_cell_where_the_cameras_see_it():
             uv = c @ np.asarray(intr[i], np.float64).T
             with np.errstate(divide="ignore", invalid="ignore"):
                 f = (uv[:, :2] / c[:, 2:] - (stride - 1) / 2) / stride
-            ok = (c[:, 2] > 0.1) & (f >= 0).all(1) & (f[:, 0] <= fw - 1) & (f[:, 1] <= fh - 1)
-            want[ok, k] += f[ok]
-            seen[ok, k] += 1
-    assert 0 < seen.sum() < seen.size  # some points are seen, some not
-    want = want / np.maximum(seen, 1)[..., None]
-    feats = got[..., : 2 * len(heights)].reshape(size * size, len(heights), 2)
+            ok = (c[:, 2] > 0.1) & (f >= 0).all(1) & (f[:, 0] <= w - 1) & (f[:, 1] <= h - 1)
+            cosine = np.where(ok, c[:, 2] / np.linalg.norm(c, axis=1), -2.0)
+            better = cosine > best[:, k]
+            best[better, k] = cosine[better]
+            want[better, k] = np.concatenate([f, np.full((len(f), 1), i)], 1)[better]
+    seen = best > -2
+    assert 0 < seen.sum() < seen.size and len(np.unique(want[..., 2][seen])) == n
+    feats = got[..., : 3 * len(heights)].reshape(size * size, len(heights), 3)
     np.testing.assert_allclose(feats, want, atol=2e-3)
-    np.testing.assert_allclose(got[..., 2 * len(heights) :].reshape(-1, len(heights)), seen / 3)
+    np.testing.assert_array_equal(got[..., 3 * len(heights) :].reshape(-1, len(heights)), seen)
 
 
 def test_the_ground_skip_enters_the_decoder_at_64():

@@ -142,10 +142,12 @@ def ground_features(
     heights=PILLAR_HEIGHTS,
 ) -> jax.Array:
     """Camera features sampled where each cell of a ``size x size`` BEV grid projects: every
-    cell's centre at each of ``heights`` (ego z, m) projected into every camera, the feature
-    map bilinearly interpolated there (feature pixel centres as in
-    :func:`feature_pixel_centers`), averaged over the cameras that see the point (in front of
-    the camera, inside the feature map).
+    cell's centre at each of ``heights`` (ego z, m) is projected into the camera that sees it
+    most frontally (the largest cosine between its optical axis and the point, among the
+    cameras with the point in front and inside the feature map), and that camera's feature map
+    is bilinearly interpolated there (feature pixel centres as in
+    :func:`feature_pixel_centers`). One gather per corner and point: all cameras' samples
+    averaged cost the training step twice its time (the scatter of the backward pass).
 
     Args:
       stage: ``(B, N, h, w, F)`` features of stride ``stride``.
@@ -154,8 +156,8 @@ def ground_features(
         :func:`bev_reference_points`.
 
     Returns:
-      ``(B, size, size, H * (F + 1))``: per height the averaged features, then per height the
-      fraction of cameras that see the point.
+      ``(B, size, size, H * (F + 1))``: per height the sampled features (0 where no camera sees
+      the point), then per height whether a camera sees it (1 or 0).
     """
     b, n, fh, fw, f = stage.shape
     cells = jnp.asarray(bev_reference_points(size).reshape(-1, 2) * PERCEPTION_RANGE)  # (P, 2)
@@ -175,25 +177,29 @@ def ground_features(
     fu = (uv[..., 0] - (stride - 1) / 2) / stride  # feature pixel coordinates, centres integer
     fv = (uv[..., 1] - (stride - 1) / 2) / stride
     seen = (z > 0.1) & (fu >= 0) & (fu <= fw - 1) & (fv >= 0) & (fv <= fh - 1)  # (B, N, PH)
+    cosine = jnp.where(seen, z / jnp.maximum(jnp.linalg.norm(cam, axis=-1), 1e-6), -2.0)
+    best = jnp.argmax(cosine, axis=1)[:, None]  # (B, 1, PH): the most frontal camera
+
+    def pick(x):
+        return jnp.take_along_axis(x, best, axis=1)[:, 0]  # (B, PH)
+
+    fu, fv, seen = pick(fu), pick(fv), pick(seen)
     u0 = jnp.clip(jnp.floor(fu), 0, fw - 2)
     v0 = jnp.clip(jnp.floor(fv), 0, fh - 2)
     wu, wv = jnp.clip(fu - u0, 0, 1), jnp.clip(fv - v0, 0, 1)
-    base = (v0 * fw + u0).astype(jnp.int32)
-    flat = stage.reshape(b, n, fh * fw, f)
+    base = (best[:, 0] * (fh * fw) + v0 * fw + u0).astype(jnp.int32)  # (B, PH)
+    flat = stage.reshape(b, n * fh * fw, f)
 
     def corner(offset, weight):
-        vals = jnp.take_along_axis(flat, (base + offset)[..., None], axis=2)  # (B, N, PH, F)
+        vals = jnp.take_along_axis(flat, (base + offset)[..., None], axis=1)  # (B, PH, F)
         return vals * weight[..., None]
 
     sample = corner(0, (1 - wv) * (1 - wu)) + corner(1, (1 - wv) * wu)
     sample = sample + corner(fw, wv * (1 - wu)) + corner(fw + 1, wv * wu)
     seen = seen.astype(stage.dtype)
-    count = seen.sum(axis=1)  # (B, PH)
-    mean = (sample * seen[..., None]).sum(axis=1) / jnp.maximum(count, 1.0)[..., None]
     nh = len(heights)
-    mean = mean.reshape(b, size, size, nh * f)
-    frac = (count / n).reshape(b, size, size, nh)
-    return jnp.concatenate([mean, frac], axis=-1)
+    feats = (sample * seen[..., None]).reshape(b, size, size, nh * f)
+    return jnp.concatenate([feats, seen.reshape(b, size, size, nh)], axis=-1)
 
 
 def fourier_features(x: jax.Array, num_frequencies: int) -> jax.Array:

@@ -55,8 +55,8 @@ class ModelConfig:
         fed to the decoder at its size as a skip. Needs ``camera_queries=16`` and
         ``geometric_attention``.
       camera_ground_skip: also sample the camera backbone's stride-4 features where each cell
-        of a 64 x 64 (1 m) grid projects at ``camera.PILLAR_HEIGHTS`` (bilinear, averaged over
-        the cameras that see it; ``camera.ground_features``), fed to the decoder at 64 x 64 as
+        of a 64 x 64 (1 m) grid projects at ``camera.PILLAR_HEIGHTS`` (bilinear, in the camera
+        that sees it most frontally; ``camera.ground_features``), fed to the decoder at 64 x 64 as
         a skip: the image's own resolution reaches the BEV without the 4 m latent.
       transformer_layers: DETR-style decoder layers (self-attn, cross-attn, FFN).
       num_heads: attention heads; ffn_dim: FFN hidden width; dropout: in attention and FFN.
