@@ -393,4 +393,5 @@ def test_the_ground_skip_enters_the_decoder_at_64():
         (logits, _), variables = _shapes(cfg, batch)
         assert logits.shape == (2, 2, 128, 128)
         assert "ground_skip64" in variables["params"]["decoder"]
-    assert "ground_skip64" not in _shapes(preset("tiny"), batch)[1]["params"]["decoder"]
+    off = preset("tiny", camera_ground_skip=False)
+    assert "ground_skip64" not in _shapes(off, batch)[1]["params"]["decoder"]
