@@ -84,6 +84,17 @@ FINE_TOKENS = 16  # tokens each cell of the fine query grid reads (model.camera_
 GROUND_GRID = 64  # cells of model.camera_ground_skip's grid per side (1 m over +-32 m)
 
 
+def pillar_points(size: int, heights) -> jax.Array:
+    """Ego ``(x, y, z)`` metres of each ``size x size`` cell's centre (:func:`bev_reference_points`
+    order) at each of ``heights``: ``(size * size, H, 3)``."""
+    cells = jnp.asarray(bev_reference_points(size).reshape(-1, 2) * PERCEPTION_RANGE)
+    z = jnp.broadcast_to(
+        jnp.asarray(heights, jnp.float32)[None, :, None], (len(cells), len(heights), 1)
+    )
+    xy = jnp.broadcast_to(cells[:, None], (len(cells), len(heights), 2))
+    return jnp.concatenate([xy, z], axis=-1)
+
+
 def geometric_attention_bias(
     intrinsics: jax.Array,
     cam_to_ego: jax.Array,
@@ -105,15 +116,7 @@ def geometric_attention_bias(
       ``(B, Q, N * h * w)`` float32, queries in :func:`bev_reference_points` order (row-major
       ``size x size``), tokens in ``(camera, row, column)`` order like the encoder's tokens.
     """
-    cells = jnp.asarray(bev_reference_points(size).reshape(-1, 2) * PERCEPTION_RANGE)  # (Q, 2)
-    heights = jnp.asarray(PILLAR_HEIGHTS, jnp.float32)
-    pts = jnp.concatenate(
-        [
-            jnp.broadcast_to(cells[:, None], (cells.shape[0], len(PILLAR_HEIGHTS), 2)),
-            jnp.broadcast_to(heights[None, :, None], (cells.shape[0], len(PILLAR_HEIGHTS), 1)),
-        ],
-        axis=-1,
-    )  # (Q, H, 3) ego metres
+    pts = pillar_points(size, PILLAR_HEIGHTS)  # (Q, H, 3) ego metres
     ego_to_cam = jnp.linalg.inv(cam_to_ego)  # (B, N, 4, 4)
     cam = jnp.einsum("bnij,qhj->bnqhi", ego_to_cam[..., :3, :3], pts)
     cam = cam + ego_to_cam[..., None, None, :3, 3]  # (B, N, Q, H, 3)
@@ -160,15 +163,7 @@ def ground_features(
       the point), then per height whether a camera sees it (1 or 0).
     """
     b, n, fh, fw, f = stage.shape
-    cells = jnp.asarray(bev_reference_points(size).reshape(-1, 2) * PERCEPTION_RANGE)  # (P, 2)
-    hs = jnp.asarray(heights, jnp.float32)
-    pts = jnp.concatenate(
-        [
-            jnp.broadcast_to(cells[:, None], (cells.shape[0], len(heights), 2)),
-            jnp.broadcast_to(hs[None, :, None], (cells.shape[0], len(heights), 1)),
-        ],
-        axis=-1,
-    ).reshape(-1, 3)  # (P * H, 3) ego metres
+    pts = pillar_points(size, heights).reshape(-1, 3)  # (P * H, 3) ego metres
     ego_to_cam = jnp.linalg.inv(cam_to_ego)  # (B, N, 4, 4)
     cam = jnp.einsum("bnij,pj->bnpi", ego_to_cam[..., :3, :3], pts) + ego_to_cam[..., None, :3, 3]
     pix = jnp.einsum("bnij,bnpj->bnpi", intrinsics, cam)
