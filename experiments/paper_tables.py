@@ -147,15 +147,30 @@ def store_dir(budget: str) -> str:
     return os.path.join(REPO, "experiments", "results", budget)
 
 
-def _commit(cwd: str) -> str:
+def _commit(cwd: str, store: str | None = None) -> str:
     """``git rev-parse HEAD`` of the checkout the jobs run in, ``+dirty`` if tracked files
-    differ from it; ``unknown`` outside a git checkout."""
+    differ from it, not counting the results store ``store`` (its entries are this script's
+    output: a set run from a checkout that holds its own store would otherwise mark every row
+    after the first dirty); ``unknown`` outside a git checkout."""
     try:
         head = subprocess.run(
             ["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, check=True
         ).stdout.strip()
+        top = subprocess.run(
+            ["git", "rev-parse", "--show-toplevel"],
+            cwd=cwd,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        spec = []
+        if store is not None:
+            store = os.path.realpath(store)
+            if os.path.commonpath([store, os.path.realpath(top)]) == os.path.realpath(top):
+                rel = os.path.relpath(store, os.path.realpath(top))
+                spec = ["--", ":/", f":(top,exclude){rel}"]
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
+            ["git", "status", "--porcelain", "--untracked-files=no", *spec],
             cwd=cwd,
             capture_output=True,
             text=True,
@@ -192,7 +207,7 @@ def store_result(job: Job, budget: str, rdir: str, store: str) -> str:
         "budget": budget,
         "command": cmd,
         "run_dir": os.path.abspath(rdir),
-        "commit": _commit(os.getcwd()),
+        "commit": _commit(os.getcwd(), store),
         "stored_at": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "results": res,
     }

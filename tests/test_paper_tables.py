@@ -355,3 +355,33 @@ def test_modality_table_shows_seed_means_and_night_frames():
     assert "| LiDAR only | 0, 2 (different commits: no mean) | – | – | – | – |" in (
         paper_report._modality_table(data)
     )
+
+
+def test_the_results_store_does_not_make_the_checkout_dirty(tmp_path):
+    """A set run from a checkout that holds its own store: the rows stored after the first
+    still name the clean commit; a change to the code (or a store outside) still shows."""
+    spec = importlib.util.spec_from_file_location("paper_tables", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("paper_tables", mod)  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    repo = tmp_path / "repo"
+    store = repo / "experiments" / "results" / "cpu"
+    store.mkdir(parents=True)
+    (store / "hd.json").write_text("{}")
+    (repo / "code.py").write_text("x = 1\n")
+
+    def git(*args):
+        subprocess.run(["git", *args], cwd=repo, check=True, capture_output=True)
+
+    git("init", "-q")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "init")
+    head = subprocess.run(
+        ["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, check=True
+    ).stdout.strip()
+    (store / "hd.json").write_text('{"results": 1}')  # the store's own write
+    assert mod._commit(str(repo), str(store)) == head
+    assert mod._commit(str(repo)) == head + "+dirty"  # without the store named, as before
+    (repo / "code.py").write_text("x = 2\n")
+    assert mod._commit(str(repo), str(store)) == head + "+dirty"
+    assert mod._commit(str(repo), str(tmp_path / "elsewhere")) == head + "+dirty"
