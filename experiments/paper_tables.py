@@ -156,19 +156,18 @@ def _commit(cwd: str, store: str | None = None) -> str:
         head = subprocess.run(
             ["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, check=True
         ).stdout.strip()
-        top = subprocess.run(
-            ["git", "rev-parse", "--show-toplevel"],
-            cwd=cwd,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
+        top = os.path.realpath(
+            subprocess.run(
+                ["git", "rev-parse", "--show-toplevel"],
+                cwd=cwd,
+                capture_output=True,
+                text=True,
+                check=True,
+            ).stdout.strip()
+        )
         spec = []
-        if store is not None:
-            store = os.path.realpath(store)
-            if os.path.commonpath([store, os.path.realpath(top)]) == os.path.realpath(top):
-                rel = os.path.relpath(store, os.path.realpath(top))
-                spec = ["--", ":/", f":(top,exclude){rel}"]
+        if store is not None and os.path.commonpath([os.path.realpath(store), top]) == top:
+            spec = ["--", ":/", f":(top,exclude){os.path.relpath(os.path.realpath(store), top)}"]
         dirty = subprocess.run(
             ["git", "status", "--porcelain", "--untracked-files=no", *spec],
             cwd=cwd,

@@ -357,9 +357,10 @@ def test_modality_table_shows_seed_means_and_night_frames():
     )
 
 
-def test_the_results_store_does_not_make_the_checkout_dirty(tmp_path):
-    """A set run from a checkout that holds its own store: the rows stored after the first
-    still name the clean commit; a change to the code (or a store outside) still shows."""
+def test_the_results_store_does_not_make_the_checkout_dirty(tmp_path, monkeypatch):
+    """A set run from a checkout that holds its own store (``run`` -> ``store_result``): the
+    rows stored after the first still name the clean commit; a change to the code, or to a
+    store outside the checkout, still shows as ``+dirty``."""
     spec = importlib.util.spec_from_file_location("paper_tables", SCRIPT)
     mod = importlib.util.module_from_spec(spec)
     sys.modules.setdefault("paper_tables", mod)  # dataclasses look their module up
@@ -371,17 +372,28 @@ def test_the_results_store_does_not_make_the_checkout_dirty(tmp_path):
     (repo / "code.py").write_text("x = 1\n")
 
     def git(*args):
-        subprocess.run(["git", *args], cwd=repo, check=True, capture_output=True)
+        return subprocess.run(
+            ["git", *args], cwd=repo, check=True, capture_output=True, text=True
+        ).stdout.strip()
 
     git("init", "-q")
     git("add", ".")
     git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "init")
-    head = subprocess.run(
-        ["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, check=True
-    ).stdout.strip()
-    (store / "hd.json").write_text('{"results": 1}')  # the store's own write
-    assert mod._commit(str(repo), str(store)) == head
-    assert mod._commit(str(repo)) == head + "+dirty"  # without the store named, as before
+    head = git("rev-parse", "HEAD")
+    monkeypatch.chdir(repo)  # the jobs run in the checkout
+    rdir = tmp_path / "run"
+    rdir.mkdir()
+
+    def stored(job, splits, where=store):
+        (rdir / "results.json").write_text(json.dumps({"splits": splits, "config": {}}))
+        return json.loads(
+            open(mod.store_result(mod.BY_NAME[job], "cpu", str(rdir), str(where))).read()
+        )["commit"]
+
+    assert stored("hd", {"test": 1}) == head  # rewrites the tracked hd.json
+    assert stored("sd", {"test": 2}) == head  # the store's own write is not a change
     (repo / "code.py").write_text("x = 2\n")
-    assert mod._commit(str(repo), str(store)) == head + "+dirty"
-    assert mod._commit(str(repo), str(tmp_path / "elsewhere")) == head + "+dirty"
+    assert stored("road", {"test": 3}) == head + "+dirty"
+    (repo / "code.py").write_text("x = 1\n")
+    (store / "hd.json").write_text("[]")  # tracked, changed, but not the store named
+    assert stored("building", {"test": 4}, where=tmp_path / "elsewhere") == head + "+dirty"
