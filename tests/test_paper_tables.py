@@ -13,6 +13,15 @@ import pytest
 SCRIPT = os.path.join(os.path.dirname(__file__), "..", "experiments", "paper_tables.py")
 
 
+def _module():
+    """The script as a module (dataclasses look their module up in ``sys.modules``)."""
+    spec = importlib.util.spec_from_file_location("paper_tables", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("paper_tables", mod)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def _tiny(data_root):
     return [
         f"data.root={data_root}",
@@ -98,10 +107,7 @@ def test_run_skip_and_collect(tmp_path):
 
 
 def test_store_entry_of_another_job_is_refused(tmp_path):
-    spec = importlib.util.spec_from_file_location("paper_tables", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("paper_tables", mod)  # dataclasses look their module up
-    spec.loader.exec_module(mod)
+    mod = _module()
     (tmp_path / "sd.json").write_text(json.dumps({"job": "hd", "budget": "cpu", "results": {}}))
     with pytest.raises(
         ValueError, match=r"sd\.json: holds job 'hd' budget 'cpu', expected job 'sd'"
@@ -114,10 +120,7 @@ def test_stored_command_is_the_one_that_ran(tmp_path):
     # A row run at a checkout older than eval.mode (its config has no such key) ran without
     # eval.mode=single: the store says so, and re-storing corrects an entry that claimed it,
     # keeping the entry's commit and run directory.
-    spec = importlib.util.spec_from_file_location("paper_tables", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("paper_tables", mod)
-    spec.loader.exec_module(mod)
+    mod = _module()
     job, rdir, store = mod.BY_NAME["sd"], tmp_path / "run", tmp_path / "store"
     rdir.mkdir()
     old = {"splits": {}, "config": {"eval": {"splits": ["test"]}}}
@@ -147,10 +150,7 @@ def test_stored_command_is_the_one_that_ran(tmp_path):
 
 
 def test_findings_weigh_the_deciding_gap_against_the_seed_range():
-    spec = importlib.util.spec_from_file_location("paper_tables", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("paper_tables", mod)
-    spec.loader.exec_module(mod)
+    mod = _module()
 
     def row(r1):
         return {"results": {"splits": {"test": {"R@1m": r1}}}}
@@ -262,14 +262,6 @@ def test_rows_from_different_machines_are_compared_and_named(tmp_path):
     assert mod.load([mod.BY_NAME["road"]], "cpu", str(tmp_path))["road"]["machine"] == zen
 
 
-def _module():
-    spec = importlib.util.spec_from_file_location("paper_tables", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("paper_tables", mod)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_nm_job_is_the_papers_nm_measured_beside_hd_and_sd():
     """The NM row trains on the SD map (paper: road width 10) with the neural map over the OSM
     class raster, and is evaluated on the same splits as HD and SD (test and the unseen
@@ -361,10 +353,7 @@ def test_the_results_store_does_not_make_the_checkout_dirty(tmp_path, monkeypatc
     """A set run from a checkout that holds its own store (``run`` -> ``store_result``): the
     rows stored after the first still name the clean commit; a change to the code, or to a
     store outside the checkout, still shows as ``+dirty``."""
-    spec = importlib.util.spec_from_file_location("paper_tables", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("paper_tables", mod)  # dataclasses look their module up
-    spec.loader.exec_module(mod)
+    mod = _module()
     repo = tmp_path / "repo"
     store = repo / "experiments" / "results" / "cpu"
     store.mkdir(parents=True)
